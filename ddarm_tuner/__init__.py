@@ -1,0 +1,1 @@
+"""Episodes, performance indices, gain searches and the ddarm command."""

@@ -1,0 +1,129 @@
+"""The `ddarm` command: run episodes and print their indices."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+
+import numpy as np
+
+from ddarm_control.laws import CONTROLLERS
+from ddarm_sim.model import ModelError
+from ddarm_sim.plant import DEFAULT_SUBSTEPS, PlantError
+from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
+from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a finite number')
+    return value
+
+
+def add_episode_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that define an episode (MODEL.md's defaults)."""
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    parser.add_argument('--trajectory', type=int, choices=sorted(TRAJECTORY_ENDPOINTS), default=1)
+    parser.add_argument('--duration', type=_finite, default=1.0, metavar='T', help='T in s (default 1)')
+    parser.add_argument('--period', type=_finite, default=0.01, metavar='DT',
+                        help='sampling period Δ in s (default 0.01)')
+    gains = parser.add_mutually_exclusive_group(required=True)
+    gains.add_argument('--omega', type=_finite, metavar='W',
+                       help='gains from the ω rule of section 2 (PD + gravity: m_ii at q_f)')
+    gains.add_argument('--kp', type=_finite, nargs='+', metavar='K', help='K_p diagonal, one per joint')
+    parser.add_argument('--kv', type=_finite, nargs='+', metavar='V', help='K_v diagonal, with --kp')
+    parser.add_argument('--delay', type=int, default=1, metavar='D',
+                        help='compute delay in samples (default 1; the paper uses 0 for PD + gravity)')
+    parser.add_argument('--tau', type=_finite, default=0.0,
+                        help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
+    limits = parser.add_mutually_exclusive_group()
+    limits.add_argument('--limited', action='store_true',
+                        help="the paper's torque limits: 2 x max nominal torque per joint")
+    limits.add_argument('--torque-limit', type=_finite, nargs='+', metavar='N',
+                        help='torque limits in N m, one per joint')
+    parser.add_argument('--external-torque', type=_finite, nargs='+', metavar='PZ',
+                        help='constant external joint torques P^z in N m')
+    parser.add_argument('--viscous-friction', type=_finite, nargs='+', metavar='B')
+    parser.add_argument('--coulomb-friction', type=_finite, nargs='+', metavar='C')
+    parser.add_argument('--mass-scale', type=_finite, nargs='+', metavar='S',
+                        help="plant link mass / model link mass, per link (default 1: model = plant)")
+    parser.add_argument('--substeps', type=int, default=DEFAULT_SUBSTEPS,
+                        help=f'RK4 steps per sampling period (default {DEFAULT_SUBSTEPS})')
+
+
+def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
+    if args.omega is not None:
+        final = paper_trajectory(args.trajectory, args.duration).qf
+        kp, kv = gains_from_omega(args.controller, args.omega, final_position=final)
+    else:
+        if args.kv is None:
+            raise EpisodeError('--kp needs --kv')
+        kp, kv = args.kp, args.kv
+    return EpisodeSpec(
+        controller=args.controller, kp=kp, kv=kv, trajectory=args.trajectory, duration=args.duration,
+        period=args.period, delay=args.delay, tau=args.tau,
+        torque_limit='paper' if args.limited else (args.torque_limit or 'none'),
+        external_torque=args.external_torque, viscous_friction=args.viscous_friction,
+        coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps)
+
+
+def _format_vector(values) -> str:
+    return '(' + ', '.join(f'{value:.6g}' for value in values) + ')'
+
+
+def print_summary(summary: dict) -> None:
+    spec = summary['spec']
+    print(f"{spec['controller']}  trajectory {spec['trajectory']}  T = {spec['duration']} s  "
+          f"Δ = {spec['period']} s  delay {spec['delay']}  τ = {spec['tau']} s  "
+          f"torque limit {spec['torque_limit']}")
+    print(f"  kp = {_format_vector(spec['kp'])}  kv = {_format_vector(spec['kv'])}")
+    print(f"  I1 (2.5) = {summary['I1']:.6g}   I2 = {summary['I2']:.6g}   I (3.2) = {summary['I']:.6g}")
+    if summary['diverged']:
+        print(f"  DIVERGED at sample {summary['diverged_at_sample']}: indices cover the "
+              f"{summary['samples_scored']} samples before it")
+    if summary['max_abs_error_deg'] is not None:
+        print(f"  max |e| (deg) = {_format_vector(summary['max_abs_error_deg'])}   "
+              f"max |P| (N m) = {_format_vector(summary['max_abs_torque'])}")
+
+
+def command_episode(args: argparse.Namespace) -> int:
+    spec = episode_spec(args)
+    started = time.perf_counter()
+    result = run_episode(spec)
+    summary = {**result.summary(), 'wall_time_s': time.perf_counter() - started,
+               'command': shlex.join(['ddarm', *args.argv])}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print_summary(summary)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='ddarm', description='Feedback-gain selection for the direct-drive arm (Kowalska).')
+    commands = parser.add_subparsers(dest='command', required=True)
+    episode = commands.add_parser('episode', help='run one closed-loop episode and print its indices')
+    add_episode_arguments(episode)
+    episode.add_argument('--json', action='store_true', help='print one JSON object')
+    episode.set_defaults(handler=command_episode)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    args.argv = argv
+    try:
+        return args.handler(args)
+    except (EpisodeError, ModelError, PlantError, ValueError) as error:
+        print(f'ddarm {args.command}: {error}', file=sys.stderr)
+        return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())

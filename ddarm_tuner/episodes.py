@@ -1,0 +1,218 @@
+"""One closed-loop episode run in-process: programmed motion, plant and sampled law wired together."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
+from ddarm_control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
+                                checked_delay, checked_gains, make_law)
+from ddarm_sim.model import Arm
+from ddarm_sim.plant import DEFAULT_SUBSTEPS, Plant, PlantOptions, disturbed_initial_state
+from ddarm_sim.trajectory import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
+                                  sample_count, sample_times)
+from ddarm_tuner.indices import index_3_2
+
+# Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
+MAX_SAMPLES = 1_000_000
+
+
+class EpisodeError(ValueError):
+    """An episode specification that cannot be run."""
+
+
+@lru_cache(maxsize=16)
+def load_arm(urdf: str | None, mass_scale: tuple[float, ...] | None = None) -> Arm:
+    """The arm from a URDF, loaded once per process (Arm holds scratch space: one thread only)."""
+    return Arm.from_urdf(urdf, mass_scale)
+
+
+def _optional_tuple(values) -> tuple[float, ...] | None:
+    return None if values is None else tuple(float(v) for v in values)
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """Everything that defines an episode; its defaults are MODEL.md's (and the user's delay of 1)."""
+
+    controller: str
+    kp: tuple[float, ...]
+    kv: tuple[float, ...]
+    trajectory: int = 1
+    duration: float = 1.0
+    period: float = 0.01
+    delay: int = 1
+    tau: float = 0.0
+    torque_limit: str | tuple[float, ...] = 'none'  # 'none', 'paper' (2 x max nominal) or N/m per joint
+    external_torque: tuple[float, ...] | None = None
+    viscous_friction: tuple[float, ...] | None = None
+    coulomb_friction: tuple[float, ...] | None = None
+    mass_scale: tuple[float, ...] | None = None  # the plant's links against the controller's model
+    substeps: int = DEFAULT_SUBSTEPS
+    urdf: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ('kp', 'kv', 'external_torque', 'viscous_friction', 'coulomb_friction', 'mass_scale'):
+            object.__setattr__(self, name, _optional_tuple(getattr(self, name)))
+        if not isinstance(self.torque_limit, str):
+            object.__setattr__(self, 'torque_limit', _optional_tuple(self.torque_limit))
+        elif self.torque_limit not in ('none', 'paper'):
+            raise EpisodeError(f"torque_limit must be 'none', 'paper' or one number per joint, "
+                               f'got {self.torque_limit!r}')
+        if self.controller not in CONTROLLERS:
+            raise EpisodeError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
+        if not (np.isfinite(self.tau) and 0 <= self.tau <= self.duration):
+            raise EpisodeError(f'tau must be within [0, T = {self.duration}] s, got {self.tau!r}')
+        try:
+            checked_delay(self.delay)
+            if sample_count(self.duration, self.period) > MAX_SAMPLES:
+                raise EpisodeError(f'{self.duration} s at {self.period} s is more than {MAX_SAMPLES} samples')
+        except (GainError, ValueError) as error:
+            raise EpisodeError(str(error)) from error
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class EpisodePlan:
+    """What an episode needs before it starts: samples, programmed motion, nominal torque, limits, start."""
+
+    times: np.ndarray
+    q_ref: np.ndarray
+    v_ref: np.ndarray
+    a_ref: np.ndarray
+    nominal: np.ndarray
+    torque_limit: np.ndarray | None
+    q0: np.ndarray
+    v0: np.ndarray
+
+    @property
+    def k_max(self) -> int:
+        return len(self.times) - 1
+
+
+def plan_episode(spec: EpisodeSpec) -> EpisodePlan:
+    """The paper's programmed motion for `spec`, sampled at j Δ for j = 0 … T/Δ."""
+    motion = paper_trajectory(spec.trajectory, spec.duration)
+    return plan_motion(spec, motion, sample_times(spec.duration, spec.period))
+
+
+def plan_motion(spec: EpisodeSpec, motion: ProgrammedMotion, times: np.ndarray) -> EpisodePlan:
+    """The motion at the sample times, P^nom from the nominal model, limits and the τ-disturbed start."""
+    model = load_arm(spec.urdf)
+    if motion.dof != model.dof:
+        raise EpisodeError(f'the programmed motion has {motion.dof} joints, the URDF {model.dof}')
+    q_ref, v_ref, a_ref = motion.sample(times)
+    nominal = nominal_torque(model, motion, times)
+    if spec.torque_limit == 'none':
+        limit = None
+    elif spec.torque_limit == 'paper':
+        limit = paper_torque_limit(nominal)
+    else:
+        limit = np.array(spec.torque_limit)
+    _, v_at_tau, _ = motion.sample(spec.tau)
+    q0, v0 = disturbed_initial_state(q_ref[0], v_at_tau)
+    return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0)
+
+
+@dataclass
+class EpisodeResult:
+    """An episode's samples j = 0 … k_max and its indices; after a divergence, the samples before it."""
+
+    spec: EpisodeSpec
+    plan: EpisodePlan
+    q: np.ndarray
+    v: np.ndarray
+    command: np.ndarray  # what the law asked for
+    torque: np.ndarray  # what the actuators applied (after saturation)
+    diverged_at: int | None = None
+    indices: dict = field(default_factory=dict)
+
+    @property
+    def errors(self) -> np.ndarray:
+        return self.plan.q_ref[:len(self.q)] - self.q
+
+    @property
+    def error_rates(self) -> np.ndarray:
+        return self.plan.v_ref[:len(self.v)] - self.v
+
+    @property
+    def diverged(self) -> bool:
+        return self.diverged_at is not None
+
+    def summary(self) -> dict:
+        """The JSON-ready figures: indices, divergence, per-joint maxima, and the spec that made them."""
+        errors, torque = self.errors[:len(self.torque)], self.torque
+        return {
+            **self.indices,
+            'diverged': self.diverged,
+            'diverged_at_sample': self.diverged_at,
+            'samples_scored': len(torque),
+            'k_max': self.plan.k_max,
+            'max_abs_error_deg': np.degrees(np.max(np.abs(errors), axis=0)).tolist() if len(torque) else None,
+            'max_abs_torque': np.max(np.abs(torque), axis=0).tolist() if len(torque) else None,
+            'max_abs_nominal_torque': np.max(np.abs(self.plan.nominal), axis=0).tolist(),
+            'torque_limit': None if self.plan.torque_limit is None else self.plan.torque_limit.tolist(),
+            'spec': self.spec.to_dict(),
+        }
+
+
+def score(plan: EpisodePlan, errors: np.ndarray, torque: np.ndarray) -> dict:
+    """I (3.2), I1 (2.5) and I2 over the scored samples, divided by k_max as (2.5) says."""
+    total, first, second = index_3_2(errors, torque, plan.nominal, plan.k_max)
+    return {'I1': float(first), 'I2': float(second), 'I': float(total)}
+
+
+def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
+                     final_position: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The ω rule of section 2 for `controller`; PD + gravity takes m_ii of the model at q_f."""
+    if not (np.isfinite(omega) and omega > 0):
+        raise EpisodeError(f'omega must be finite and positive, got {omega!r}')
+    model = load_arm(urdf)
+    if controller == 'computed_torque':
+        return omega_rule_computed_torque(model.dof, omega)
+    if final_position is None:
+        raise EpisodeError('the PD + gravity ω rule needs the final position q_f')
+    return omega_rule_pd_gravity(np.diag(model.mass_matrix(final_position)), omega)
+
+
+def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> EpisodeResult:
+    """Run one episode in-process (MODEL.md 5): P_n from the state of sample n - d, held over [t_n, t_{n+1})."""
+    plan = plan if plan is not None else plan_episode(spec)
+    model = load_arm(spec.urdf)
+    plant_arm = load_arm(spec.urdf, spec.mass_scale)
+    try:
+        kp, kv = checked_gains(spec.kp, spec.kv, model.dof)
+    except GainError as error:
+        raise EpisodeError(str(error)) from error
+    options = PlantOptions(period=spec.period, substeps=spec.substeps, torque_limit=plan.torque_limit,
+                           viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
+                           external_torque=spec.external_torque)
+    plant = Plant(plant_arm, options, plan.q0, plan.v0)
+    law = make_law(spec.controller, model, kp, kv, plant.options.viscous_friction,
+                   plant.options.coulomb_friction)
+    controller = SampledController(law, spec.delay)
+    samples = plan.k_max + 1
+    dof = model.dof
+    q, v = np.empty((samples, dof)), np.empty((samples, dof))
+    command, torque = np.empty((samples, dof)), np.empty((samples, dof))
+    diverged_at = None
+    scored = samples
+    for n in range(samples):
+        q[n], v[n] = plant.q, plant.v
+        measurement = Measurement(plant.q, plant.v, plan.q_ref[n], plan.v_ref[n])
+        command[n] = controller.step(measurement, ReferencePoint(plan.q_ref[n], plan.v_ref[n], plan.a_ref[n]))
+        if not np.all(np.isfinite(command[n])):
+            diverged_at, scored = n, n
+            break
+        torque[n] = plant.saturate(command[n])
+        if n < plan.k_max and not plant.advance(torque[n]):
+            diverged_at, scored = n + 1, n + 1
+            break
+    result = EpisodeResult(spec, plan, q[:scored], v[:scored], command[:scored], torque[:scored], diverged_at)
+    result.indices = score(plan, result.errors, result.torque)
+    return result

@@ -1,0 +1,44 @@
+"""ddarm: one ament_python package holding the ddarm_sim, ddarm_control and ddarm_tuner Python packages."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'ddarm'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    description='Feedback-gain selection for a direct-drive arm on ROS 2 Jazzy (Kowalska, PD + gravity '
+                'and computed torque)',
+    license='Apache-2.0',
+    python_requires='>=3.10',
+    packages=find_packages(include=['ddarm_sim', 'ddarm_control', 'ddarm_tuner']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/config', sorted(glob('config/*'))),
+    ],
+    # Versions seen working together on Python 3.11 (ROS 2 Jazzy from PyPI).
+    install_requires=[
+        'ros-jazzy-rclpy[fastrtps]==7.1.6',
+        'ros-jazzy-common-interfaces==5.3.6',
+        'pin==4.1.0',
+        'rosbags==0.11.9',
+        'numpy==2.4.6',
+        'scipy==1.17.1',
+        'matplotlib==3.11.2',
+        'cma==4.5.0',
+        'tqdm==4.70.1',
+        'PyYAML==6.0.3',
+    ],
+    extras_require={
+        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0'],
+    },
+    zip_safe=True,
+    entry_points={
+        'console_scripts': [
+            'ddarm = ddarm_tuner.cli:main',
+        ],
+    },
+)

@@ -1,0 +1,75 @@
+"""The `ddarm episode` command: its JSON, its human output and its refusals."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ddarm_tuner.cli import main
+from ddarm_tuner.episodes import EpisodeSpec, run_episode
+
+
+def run_json(capsys, *arguments):
+    assert main(['episode', *arguments, '--json']) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize('controller', ['pd_gravity', 'computed_torque'])
+@pytest.mark.parametrize('trajectory', ['1', '2'])
+@pytest.mark.parametrize('extra', [[], ['--limited', '--tau', '0.1']])
+def test_episode_json_has_the_indices_and_matches_the_core(capsys, controller, trajectory, extra):
+    summary = run_json(capsys, '--controller', controller, '--trajectory', trajectory,
+                       '--kp', '400', '300', '200', '--kv', '40', '30', '20', *extra)
+    assert {'I1', 'I2', 'I', 'diverged', 'spec', 'command'} <= set(summary)
+    assert summary['I'] == pytest.approx(summary['I1'] + summary['I2'], rel=1e-12)
+    spec = EpisodeSpec(**summary['spec'])
+    assert run_episode(spec).indices['I'] == summary['I']
+    assert summary['command'].startswith('ddarm episode --controller')
+
+
+def test_omega_gives_the_rule_gains(capsys):
+    computed = run_json(capsys, '--controller', 'computed_torque', '--omega', '15')
+    assert computed['spec']['kp'] == [225.0] * 3 and computed['spec']['kv'] == [30.0] * 3
+    pd = run_json(capsys, '--controller', 'pd_gravity', '--omega', '10', '--delay', '0')
+    assert pd['spec']['kp'] == pytest.approx([2800, 2700, 350])
+    assert pd['spec']['delay'] == 0 and computed['spec']['delay'] == 1
+
+
+def test_a_diverging_episode_is_reported_not_crashed(capsys):
+    summary = run_json(capsys, '--controller', 'computed_torque', '--kp', '1e6', '1e6', '1e6',
+                       '--kv', '3e3', '3e3', '3e3')
+    assert summary['diverged'] is True
+    assert all(isinstance(summary[key], float) for key in ('I1', 'I2', 'I'))
+
+
+def test_human_output_names_the_indices(capsys):
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15']) == 0
+    out = capsys.readouterr().out
+    assert 'I1 (2.5)' in out and 'I (3.2)' in out
+
+
+@pytest.mark.parametrize('arguments, problem', [
+    (['--kp', '1', '2', '--kv', '1', '2', '3'], 'kp needs 3'),
+    (['--kp', '1', '2', '3'], '--kp needs --kv'),
+    (['--omega', '-3'], 'omega'),
+    (['--omega', '15', '--period', '0.003'], 'whole number'),
+    (['--omega', '15', '--tau', '2'], 'tau'),
+])
+def test_bad_options_are_refused_with_the_problem_named(capsys, arguments, problem):
+    assert main(['episode', '--controller', 'computed_torque', *arguments]) == 2
+    assert problem in capsys.readouterr().err
+
+
+def test_non_finite_numbers_are_refused_by_the_parser(capsys):
+    with pytest.raises(SystemExit):
+        main(['episode', '--controller', 'computed_torque', '--kp', 'nan', '1', '1', '--kv', '1', '1', '1'])
+    assert 'not a finite number' in capsys.readouterr().err
+
+
+def test_the_console_script_is_installed():
+    executable = Path(sys.executable).with_name('ddarm')
+    done = subprocess.run([str(executable), 'episode', '--controller', 'computed_torque', '--omega', '15',
+                           '--json'], capture_output=True, text=True, check=True)
+    assert json.loads(done.stdout)['I1'] > 0

@@ -1,0 +1,123 @@
+"""The control laws, the delay buffer and the gain rules of MODEL.md sections 5-6."""
+
+import numpy as np
+import pytest
+
+from ddarm_control.gains import (computed_torque_error_external, computed_torque_error_mass,
+                                 omega_rule_computed_torque, omega_rule_pd_gravity, pd_gravity_error,
+                                 smallest_omega)
+from ddarm_control.laws import (ComputedTorqueLaw, DelayBuffer, GainError, Measurement, PDGravityLaw,
+                                ReferencePoint, SampledController, checked_delay, checked_gains,
+                                computed_torque, pd_gravity)
+from ddarm_sim.model import Arm
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return Arm.from_urdf()
+
+
+@pytest.mark.parametrize('delay', [0, 1, 2])
+def test_delay_buffer_hands_back_sample_n_minus_d_or_sample_0(delay):
+    buffer = DelayBuffer(delay)
+    handed = [buffer.push(n) for n in range(6)]
+    assert handed == [max(n - delay, 0) for n in range(6)]
+    buffer.clear()
+    assert buffer.push('new episode') == 'new episode'
+
+
+@pytest.mark.parametrize('delay', [-1, 1.5, True, 101, 'one'])
+def test_bad_delay_is_refused(delay):
+    with pytest.raises(GainError, match='compute delay'):
+        checked_delay(delay)
+
+
+def test_pd_gravity_is_equation_2_1(arm):
+    kp, kv = np.array([1.0, 2.0, 3.0]), np.array([4.0, 5.0, 6.0])
+    law = PDGravityLaw(arm, kp, kv)
+    measured = Measurement(q=np.array([0.1, 0.2, 0.3]), v=np.array([1.0, 1.0, 1.0]),
+                           q_ref=np.array([0.2, 0.2, 0.1]), v_ref=np.zeros(3))
+    reference = ReferencePoint(q=np.array([0.5, 0.4, -0.2]), v=np.zeros(3), a=np.ones(3))
+    expected = kp * (measured.q_ref - measured.q) + kv * (0 - measured.v) + arm.gravity(reference.q)
+    np.testing.assert_allclose(law.torque(measured, reference), expected)
+
+
+def test_computed_torque_is_equation_2_6_with_kp_on_the_error(arm):
+    kp, kv = np.array([100.0, 200.0, 300.0]), np.array([1.0, 2.0, 3.0])
+    law = ComputedTorqueLaw(arm, kp, kv)
+    measured = Measurement(q=np.array([0.1, 0.2, 0.3]), v=np.array([0.5, -0.2, 0.1]),
+                           q_ref=np.array([0.2, 0.1, 0.3]), v_ref=np.array([0.0, 0.3, 0.0]))
+    reference = ReferencePoint(q=np.zeros(3), v=np.zeros(3), a=np.array([1.0, -1.0, 2.0]))
+    inner = reference.a + kp * measured.error + kv * measured.error_rate
+    expected = arm.mass_matrix(measured.q) @ inner + arm.bias(measured.q, measured.v)
+    np.testing.assert_allclose(law.torque(measured, reference), expected)
+
+
+def test_law_functions_broadcast_over_a_batch_of_gains(arm):
+    rng = np.random.default_rng(1)
+    kp, kv = rng.uniform(1, 10, (5, 3)), rng.uniform(1, 10, (5, 3))
+    error, rate, accel = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    mass, bias, gravity = arm.mass_matrix(error), arm.bias(error, rate), arm.gravity(error)
+    batch_ct = computed_torque(mass, bias, kp, kv, error, rate, accel)
+    batch_pd = pd_gravity(kp, kv, error, rate, gravity)
+    for b in range(5):
+        np.testing.assert_allclose(batch_ct[b], computed_torque(mass, bias, kp[b], kv[b], error, rate, accel))
+        np.testing.assert_allclose(batch_pd[b], pd_gravity(kp[b], kv[b], error, rate, gravity))
+
+
+@pytest.mark.parametrize('kp, kv, problem', [
+    ([1, 2], [1, 2, 3], 'kp needs 3'),
+    ([1, 2, 3], [1, 2, 3, 4], 'kv needs 3'),
+    ([1, -2, 3], [1, 2, 3], 'positive'),
+    ([1, 0, 3], [1, 2, 3], 'positive'),
+    ([1, float('nan'), 3], [1, 2, 3], 'finite'),
+    ([1, 2, 3], [1, float('inf'), 3], 'finite'),
+    (['a', 2, 3], [1, 2, 3], 'numbers'),
+])
+def test_bad_gains_are_refused_and_the_old_ones_kept(arm, kp, kv, problem):
+    with pytest.raises(GainError, match=problem):
+        checked_gains(kp, kv, 3)
+    law = PDGravityLaw(arm, [1, 1, 1], [2, 2, 2])
+    with pytest.raises(GainError):
+        law.set_gains(kp, kv)
+    np.testing.assert_array_equal(law.kp, [1, 1, 1])
+
+
+def test_sampled_controller_uses_the_delayed_measurement_and_the_current_reference(arm):
+    law = PDGravityLaw(arm, np.ones(3), np.ones(3))
+    controller = SampledController(law, delay=1)
+    refs = [ReferencePoint(np.full(3, 0.1 * n), np.zeros(3), np.zeros(3)) for n in range(3)]
+    meas = [Measurement(np.full(3, n), np.zeros(3), np.zeros(3), np.zeros(3)) for n in range(3)]
+    torques = [controller.step(m, r) for m, r in zip(meas, refs)]
+    np.testing.assert_allclose(torques[0], law.torque(meas[0], refs[0]))
+    np.testing.assert_allclose(torques[2], law.torque(meas[1], refs[2]))
+    controller.reset()
+    np.testing.assert_allclose(controller.step(meas[2], refs[0]), law.torque(meas[2], refs[0]))
+
+
+def test_omega_rules(arm):
+    kp, kv = omega_rule_computed_torque(3, 15.0)
+    np.testing.assert_array_equal(kp, [225, 225, 225])
+    np.testing.assert_array_equal(kv, [30, 30, 30])
+    diagonal = np.diag(arm.mass_matrix(np.array([np.pi / 2, 0, 0])))
+    np.testing.assert_allclose(diagonal, [28.0, 27.0, 3.5])
+    kp, kv = omega_rule_pd_gravity(diagonal, 10.0)
+    np.testing.assert_allclose(kp, [2800, 2700, 350])
+    np.testing.assert_allclose(kv, [560, 540, 70])
+    batch_kp, _ = omega_rule_computed_torque(3, np.array([1.0, 2.0]))
+    assert batch_kp.shape == (2, 3)
+
+
+def test_steady_state_formulas_and_the_smallest_omega(arm):
+    q_final = np.array([np.pi / 2, 0, 0])
+    mass = arm.mass_matrix(q_final)
+    external = np.array([0.0, 10.0, 0.0])
+    kp = np.full(3, 100.0)
+    error = computed_torque_error_external(mass, kp, external)
+    np.testing.assert_allclose(kp * (mass @ error), -external, atol=1e-12)
+    heavy = Arm.from_urdf(mass_scale=[1, 1.1, 1.1])
+    error = computed_torque_error_mass(mass, heavy.gravity(q_final), arm.gravity(q_final), kp)
+    np.testing.assert_allclose(mass @ (kp * error), heavy.gravity(q_final) - arm.gravity(q_final))
+    np.testing.assert_allclose(pd_gravity_error(np.ones(3), np.zeros(3), np.zeros(3), kp), 0.01)
+    # e_i = c_i / ω²: with c = (0, 4, 1) and a permitted 0.01, ω² = 400.
+    assert smallest_omega(np.array([0.0, 4.0, 1.0]), np.ones(3), np.full(3, 0.01)) == pytest.approx(20.0)
