@@ -93,14 +93,33 @@ def print_summary(summary: dict) -> None:
 def command_episode(args: argparse.Namespace) -> int:
     spec = episode_spec(args)
     started = time.perf_counter()
-    result = run_episode(spec)
-    summary = {**result.summary(), 'wall_time_s': time.perf_counter() - started,
+    if args.ros or args.realtime:
+        from ddarm_tuner.ros_episode import run_graph_episode  # ROS only when asked for
+
+        result = run_graph_episode(spec, realtime=args.realtime)
+        transport = 'ros-realtime' if args.realtime else 'ros-lockstep'
+    else:
+        result = run_episode(spec)
+        transport = 'in-process'
+    summary = {**result.summary(), 'transport': transport, 'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv])}
     if args.json:
         print(json.dumps(summary))
     else:
         print_summary(summary)
     return 0
+
+
+def command_plant(args: argparse.Namespace) -> int:
+    from ddarm_sim.node import main as plant_main
+
+    return plant_main(['ddarm-plant', *args.ros_arguments])
+
+
+def command_controller(args: argparse.Namespace) -> int:
+    from ddarm_control.node import main as controller_main
+
+    return controller_main(['ddarm-controller', *args.ros_arguments], args.law)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -110,7 +129,18 @@ def build_parser() -> argparse.ArgumentParser:
     episode = commands.add_parser('episode', help='run one closed-loop episode and print its indices')
     add_episode_arguments(episode)
     episode.add_argument('--json', action='store_true', help='print one JSON object')
+    episode.add_argument('--ros', action='store_true',
+                         help='run through the ROS 2 graph: plant and controller processes, lockstep over DDS')
+    episode.add_argument('--realtime', action='store_true',
+                         help='run through the ROS 2 graph on the wall clock (implies --ros)')
     episode.set_defaults(handler=command_episode)
+    plant = commands.add_parser('plant', help='start the plant node (then --ros-args ...)')
+    plant.add_argument('ros_arguments', nargs=argparse.REMAINDER)
+    plant.set_defaults(handler=command_plant)
+    controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
+    controller.add_argument('law', choices=CONTROLLERS)
+    controller.add_argument('ros_arguments', nargs=argparse.REMAINDER)
+    controller.set_defaults(handler=command_controller)
     return parser
 
 
@@ -120,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     try:
         return args.handler(args)
-    except (EpisodeError, ModelError, PlantError, ValueError) as error:
+    except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError) as error:
         print(f'ddarm {args.command}: {error}', file=sys.stderr)
         return 2
 

@@ -1,0 +1,242 @@
+"""The controller nodes: PD + gravity or computed torque on /joint_states, publishing the effort for each sample."""
+
+from __future__ import annotations
+
+import sys
+from collections import deque
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
+from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint,
+                                SampledController, checked_delay, checked_gains, make_law)
+from ddarm_sim.model import Arm, ModelError
+from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
+                                     SAMPLE_QOS, MessageError, Reference, descriptor, joint_state_msg,
+                                     proposed_values, read_joint_state, read_reference, undeclared_overrides)
+
+# States that arrive before the programmed motion wait for it, up to this many.
+MAX_WAITING_STATES = 10_000
+
+
+def effective_gains(law: str, values: dict, model: Arm, reference: Reference | None):
+    """K_p, K_v from the parameters: the ω rule when omega > 0 (PD + gravity: m_ii at q_f), else kp, kv."""
+    omega = values['omega']
+    if not (np.isfinite(omega) and omega >= 0):
+        raise GainError(f'omega must be finite and not negative, got {omega!r}')
+    if omega == 0:
+        if values['kp'] is None or values['kv'] is None:
+            raise GainError('set kp and kv (one per joint), or omega > 0')
+        return checked_gains(values['kp'], values['kv'], model.dof)
+    if law == 'computed_torque':
+        return omega_rule_computed_torque(model.dof, omega)
+    if reference is None:
+        return None  # the PD + gravity rule needs q_f: decided when the reference arrives
+    return omega_rule_pd_gravity(np.diag(model.mass_matrix(reference.q[-1])), omega)
+
+
+class ControllerNode(Node):
+    """One law behind ROS: the command for sample n from the state of sample n - d and the reference at t_n.
+
+    Each command is a JointState stamped with the sample it applies to, carrying names and effort.
+    A state at t = 0 starts a new episode (the delay buffer is cleared), as does ~/reset.
+    """
+
+    def __init__(self, law: str, **kwargs) -> None:
+        if law not in CONTROLLERS:
+            raise GainError(f'controller must be one of {CONTROLLERS}, got {law!r}')
+        super().__init__(law, **kwargs)
+        self.law_name = law
+        self._declare_parameters()
+        values = proposed_values(self, ())
+        self.model = Arm.from_urdf(values['urdf'] or None)
+        self.joints = list(values['joints']) if values['joints'] else self.model.joint_names
+        if self.joints != self.model.joint_names:
+            raise ModelError(f'joints {self.joints} must be the URDF joints in URDF order {self.model.joint_names}')
+        unknown = undeclared_overrides(self)
+        if unknown:
+            raise GainError(f'unknown parameters {unknown} (not {law} parameters: a typo?)')
+        self.period = values['period']
+        self.reference: Reference | None = None
+        gains = effective_gains(law, values, self.model, None) or (np.ones(self.model.dof),) * 2
+        self.controller = SampledController(
+            make_law(law, self.model, *gains, *self._friction(values)), checked_delay(values['compute_delay_steps']))
+        self.gains_ready = values['omega'] == 0 or law == 'computed_torque'
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.command_publisher = self.create_publisher(
+            JointState, EFFORT_COMMAND_TOPIC, SAMPLE_QOS,
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos))
+        self.state_subscription = self.create_subscription(
+            JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+        self.reference_subscription = self.create_subscription(
+            JointTrajectory, REFERENCE_TOPIC, self._on_reference, REFERENCE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
+        self.last_sample: int | None = None
+        self.waiting: deque = deque(maxlen=MAX_WAITING_STATES)
+        self.get_logger().info(self._describe())
+
+    def _declare_parameters(self) -> None:
+        double_array = Parameter.Type.DOUBLE_ARRAY
+        declared = [
+            ('urdf', '', descriptor('URDF of the controller model ("" = the ddarm arm)', read_only=True)),
+            ('joints', Parameter.Type.STRING_ARRAY, descriptor('joint names in URDF order, the order of kp and kv '
+                                                               '(unset: from the URDF)', read_only=True)),
+            ('kp', double_array, descriptor('K_p diagonal, one positive value per joint')),
+            ('kv', double_array, descriptor('K_v diagonal, one positive value per joint')),
+            ('omega', 0.0, descriptor('ω rule of section 2 when > 0 (overrides kp, kv)', floating=(0.0, 1e4))),
+            ('compute_delay_steps', 1, descriptor('compute delay d in samples', integer=(0, MAX_DELAY))),
+            ('period', 0.01, descriptor('sampling period Δ in s (to read sample indices from stamps)',
+                                        floating=(1e-4, 1.0))),
+            ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque), N m s/rad")),
+            ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque), N m")),
+        ]
+        for name, default, described in declared:
+            self.declare_parameter(name, default, described)
+
+    def _friction(self, values: dict) -> tuple:
+        friction = []
+        for name in ('viscous_friction', 'coulomb_friction'):
+            value = values[name]
+            if value is None or len(value) == 0:
+                friction.append(None)
+                continue
+            array = np.array(value, dtype=float)
+            if array.shape != (self.model.dof,) or not np.all(np.isfinite(array)) or np.any(array < 0):
+                raise GainError(f'{name} needs {self.model.dof} finite values >= 0, got {value!r}')
+            friction.append(array)
+        return tuple(friction)
+
+    def _check_parameters(self, changes) -> SetParametersResult:
+        values = proposed_values(self, changes)
+        try:
+            effective_gains(self.law_name, values, self.model, self.reference)
+            checked_delay(values['compute_delay_steps'])
+            self._friction(values)
+        except GainError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, changes) -> None:
+        values = proposed_values(self, ())
+        self.period = values['period']
+        self._set_gains(values)
+        self.controller.law = make_law(self.law_name, self.model, self.controller.law.kp, self.controller.law.kv,
+                                       *self._friction(values))
+        if values['compute_delay_steps'] != self.controller.delay:
+            self.controller.set_delay(values['compute_delay_steps'])
+        self.get_logger().info(self._describe())
+
+    def _set_gains(self, values: dict) -> None:
+        gains = effective_gains(self.law_name, values, self.model, self.reference)
+        if gains is not None:
+            self.controller.law.set_gains(*gains)
+        self.gains_ready = gains is not None
+
+    def _describe(self) -> str:
+        law = self.controller.law
+        return (f'{self.law_name}: kp {np.round(law.kp, 6).tolist()}, kv {np.round(law.kv, 6).tolist()}, '
+                f'delay {self.controller.delay} sample(s), period {self.period} s')
+
+    def _incompatible_qos(self, event) -> None:
+        self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
+                                'samples will not flow; use the profiles of ddarm_sim.ros_interface')
+
+    def _on_reference(self, msg: JointTrajectory) -> None:
+        try:
+            self.reference = read_reference(msg, self.joints, self.period)
+        except MessageError as error:
+            self.get_logger().error(f'refused: {error}')
+            return
+        self._set_gains(proposed_values(self, ()))
+        self.get_logger().info(f'reference of {len(self.reference.times)} samples; {self._describe()}')
+        while self.waiting:
+            self._command(self.waiting.popleft())
+
+    def _on_reset(self, request, response):
+        self.controller.reset()
+        self.last_sample = None
+        self.waiting.clear()
+        response.success = self.reference is not None and self.gains_ready
+        response.message = (f'ready: {self._describe()}, reference of {len(self.reference.times)} samples'
+                            if response.success else 'not ready: no reference received yet')
+        return response
+
+    def _on_state(self, msg: JointState) -> None:
+        try:
+            state = read_joint_state(msg, self.joints, self.period)
+        except MessageError as error:
+            self.get_logger().error(f'refused, no command sent: {error}')
+            return
+        if state.n == 0:
+            self.controller.reset()
+            self.waiting.clear()
+        elif self.last_sample is not None and state.n <= self.last_sample:
+            self.get_logger().error(f'refused a state for sample {state.n}: sample {self.last_sample} came already')
+            return
+        elif self.last_sample is not None and state.n > self.last_sample + 1:
+            self.get_logger().warning(f'samples {self.last_sample + 1}..{state.n - 1} never arrived')
+        self.last_sample = state.n
+        if self.reference is None or not self.gains_ready:
+            self.waiting.append(state)
+            return
+        self._command(state)
+
+    def _command(self, state) -> None:
+        q_ref, v_ref, a_ref = self.reference.point(state.n)
+        measurement = Measurement(state.q, state.v, q_ref, v_ref)
+        torque = self.controller.step(measurement, ReferencePoint(q_ref, v_ref, a_ref))
+        if not np.all(np.isfinite(torque)):
+            self.get_logger().error(f'no command for sample {state.n}: the law gave {torque.tolist()}')
+            return
+        self.command_publisher.publish(joint_state_msg(self.joints, state.n * self.period, effort=torque))
+
+
+def main(args=None, law: str | None = None) -> int:
+    args = sys.argv if args is None else args
+    if law is None:
+        non_ros = rclpy.utilities.remove_ros_args(args)[1:]
+        if len(non_ros) != 1 or non_ros[0] not in CONTROLLERS:
+            print(f'usage: controller {{{",".join(CONTROLLERS)}}} [--ros-args ...]', file=sys.stderr)
+            return 2
+        law = non_ros[0]
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ControllerNode(law)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (GainError, ModelError, ParameterException) as error:
+        print(f'{law}: refused to start: {error}', flush=True)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def main_pd_gravity(args=None) -> int:
+    return main(args, 'pd_gravity')
+
+
+def main_computed_torque(args=None) -> int:
+    return main(args, 'computed_torque')
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,330 @@
+"""The plant node: the simulated arm behind /joint_states, stepped in lockstep with its controller or in real time."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterException
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from ddarm_sim.model import Arm, ModelError
+from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
+from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
+                                     EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS, MessageError,
+                                     descriptor, joint_state_msg, proposed_values, read_joint_state,
+                                     time_msg, undeclared_overrides)
+from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
+
+MODES = ('lockstep', 'realtime')
+IDLE, STARTING, RUNNING, ENDED = 'idle', 'starting', 'running', 'ended'
+
+
+@dataclass(frozen=True)
+class PlantSettings:
+    """The plant node's parameters, checked together: what the next episode runs with."""
+
+    mode: str
+    period: float
+    command_timeout: float
+    required_subscribers: int
+    max_samples: int
+    options: PlantOptions
+    mass_scale: tuple | None
+    q0: np.ndarray
+    v0: np.ndarray
+
+
+def _optional_array(values) -> np.ndarray | None:
+    return None if values is None or len(values) == 0 else np.array(values, dtype=float)
+
+
+def plant_settings(values: dict, dof: int) -> PlantSettings:
+    """Build and check the settings from parameter values; PlantError names the first problem."""
+    if values['mode'] not in MODES:
+        raise PlantError(f"mode must be one of {MODES}, got {values['mode']!r}")
+    options = PlantOptions(
+        period=values['period'], substeps=values['substeps'],
+        torque_limit=_optional_array(values['torque_limit']),
+        viscous_friction=_optional_array(values['viscous_friction']),
+        coulomb_friction=_optional_array(values['coulomb_friction']),
+        external_torque=_optional_array(values['external_torque'])).checked(dof)
+    mass_scale = _optional_array(values['mass_scale'])
+    if mass_scale is not None and (mass_scale.shape != (dof,) or np.any(mass_scale <= 0)
+                                   or not np.all(np.isfinite(mass_scale))):
+        raise PlantError(f"mass_scale needs {dof} finite positive values, got {values['mass_scale']!r}")
+    trajectory = values['trajectory']
+    if trajectory == 0:
+        q0 = _optional_array(values['initial_position'])
+        v0 = _optional_array(values['initial_velocity'])
+        q0 = np.zeros(dof) if q0 is None else q0
+        v0 = np.zeros(dof) if v0 is None else v0
+        for name, state in (('initial_position', q0), ('initial_velocity', v0)):
+            if state.shape != (dof,) or not np.all(np.isfinite(state)):
+                raise PlantError(f'{name} needs {dof} finite values, got {values[name]!r}')
+    else:
+        if trajectory not in TRAJECTORY_ENDPOINTS:
+            raise PlantError(f'trajectory must be 0 (initial_position) or one of {sorted(TRAJECTORY_ENDPOINTS)}')
+        if not 0 <= values['tau'] <= values['duration']:
+            raise PlantError(f"tau must be within [0, duration = {values['duration']}] s, got {values['tau']}")
+        motion = paper_trajectory(trajectory, values['duration'])
+        if motion.dof != dof:
+            raise PlantError(f'trajectory {trajectory} has {motion.dof} joints, the URDF {dof}')
+        _, v_at_tau, _ = motion.sample(values['tau'])
+        q0, v0 = disturbed_initial_state(motion.q0, v_at_tau)
+    return PlantSettings(values['mode'], values['period'], values['command_timeout'],
+                         values['required_subscribers'], values['max_samples'], options,
+                         None if mass_scale is None else tuple(mass_scale), q0, v0)
+
+
+class PlantNode(Node):
+    """Publishes the arm's state at every sample and integrates each period under the commanded effort.
+
+    lockstep: the state of t_n is published, and [t_n, t_{n+1}) is integrated only once the
+    command stamped t_n arrives; a command missing for `command_timeout` wall seconds ends the
+    episode with an error. realtime: a wall timer at 1/Δ integrates under the latest command.
+    """
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('plant', **kwargs)
+        self._declare_parameters()
+        self.arm = Arm.from_urdf(self.get_parameter('urdf').value or None)
+        self.joints = self.arm.joint_names
+        self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        self.add_on_set_parameters_callback(self._check_parameters)
+
+        self.state_publisher = self.create_publisher(
+            JointState, JOINT_STATES_TOPIC, SAMPLE_QOS,
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos))
+        self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS)
+        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+        self.command_subscription = self.create_subscription(
+            JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
+        self.watchdog = self.create_timer(0.01, self._watch, clock=wall)
+        self.realtime_timer = None
+
+        self.phase = IDLE
+        self.plant: Plant | None = None
+        self.latest_command: np.ndarray | None = None
+        self.latest_command_sample = -1
+        self.deadline = 0.0
+        self.counters = {'refused_commands': 0, 'stale_commands': 0, 'deadline_misses': 0}
+        self.tick_lateness: list[float] = []
+        unknown = undeclared_overrides(self)
+        if unknown:
+            raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
+        if self.get_parameter('autostart').value:
+            self.start_episode()
+
+    def _declare_parameters(self) -> None:
+        double_array = Parameter.Type.DOUBLE_ARRAY
+        declared = [
+            ('urdf', '', descriptor('URDF of the arm ("" = the ddarm arm)', read_only=True)),
+            ('mode', 'lockstep', descriptor('lockstep (deterministic) or realtime (wall clock at 1/period)')),
+            ('period', 0.01, descriptor('sampling period Δ in s', floating=(1e-4, 1.0))),
+            ('substeps', 8, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
+            ('command_timeout', 5.0, descriptor('lockstep: wall seconds to wait for a command', floating=(1e-3, 3600.0))),
+            ('required_subscribers', 1, descriptor('joint_states subscribers to wait for before sample 0',
+                                                   integer=(1, 100))),
+            ('max_samples', 0, descriptor('periods integrated per episode (0: until reset)', integer=(0, 10**6))),
+            ('torque_limit', double_array, descriptor('actuator limit |P_i| in N m per joint (unset: none)')),
+            ('viscous_friction', double_array, descriptor('viscous friction N m s/rad per joint (unset: none)')),
+            ('coulomb_friction', double_array, descriptor('Coulomb friction N m per joint (unset: none)')),
+            ('external_torque', double_array, descriptor('constant external joint torques P^z in N m (unset: none)')),
+            ('mass_scale', double_array, descriptor('plant link mass / model link mass per link (unset: 1)',
+                                                    read_only=True)),
+            ('trajectory', 1, descriptor('start at q^d(0) of trajectory 1 or 2; 0: initial_position/velocity',
+                                         integer=(0, 2))),
+            ('duration', 1.0, descriptor('T of the programmed motion in s (for the start state)',
+                                         floating=(1e-3, 3600.0))),
+            ('tau', 0.0, descriptor('initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s',
+                                    floating=(0.0, 3600.0))),
+            ('initial_position', double_array, descriptor('start position when trajectory = 0')),
+            ('initial_velocity', double_array, descriptor('start velocity when trajectory = 0')),
+            ('autostart', True, descriptor('start an episode at launch (else on ~/reset)')),
+        ]
+        for name, default, described in declared:
+            self.declare_parameter(name, default, described)
+
+    def _parameter_values(self, changes=()) -> dict:
+        return proposed_values(self, changes)
+
+    def _check_parameters(self, changes) -> SetParametersResult:
+        try:
+            plant_settings(self._parameter_values(changes), self.arm.dof)
+        except (PlantError, ModelError, ValueError) as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def _incompatible_qos(self, event) -> None:
+        self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
+                                'samples will not flow; use the profiles of ddarm_sim.ros_interface')
+
+    # Episodes --------------------------------------------------------------------------------
+
+    def start_episode(self) -> str:
+        """Back to t = 0 at the configured start state; sample 0 goes out once subscribers match."""
+        self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        arm = self.arm if self.settings.mass_scale is None else Arm.from_urdf(
+            self.arm.urdf_path, self.settings.mass_scale)
+        self.plant = Plant(arm, self.settings.options, self.settings.q0, self.settings.v0)
+        self.latest_command, self.latest_command_sample = None, -1
+        self.counters = dict.fromkeys(self.counters, 0)
+        self.tick_lateness = []
+        if self.realtime_timer is not None:
+            self.destroy_timer(self.realtime_timer)
+            self.realtime_timer = None
+        self.phase = STARTING
+        self.deadline = time.monotonic() + self.settings.command_timeout
+        return (f'episode starts in {self.settings.mode} mode once {self.settings.required_subscribers} '
+                f'subscriber(s) listen on {self.state_publisher.topic_name}')
+
+    def _on_reset(self, request, response):
+        try:
+            response.message = self.start_episode()
+            response.success = True
+        except (PlantError, ModelError) as error:
+            response.success, response.message = False, f'reset refused: {error}'
+            self.get_logger().error(response.message)
+        return response
+
+    def _watch(self) -> None:
+        now = time.monotonic()
+        if self.phase == STARTING:
+            if self.state_publisher.get_subscription_count() >= self.settings.required_subscribers:
+                self._begin()
+            elif now > self.deadline:
+                self._end(DiagnosticStatus.ERROR, 'no_start',
+                          f'no start: {self.state_publisher.get_subscription_count()} of '
+                          f'{self.settings.required_subscribers} joint_states subscribers within '
+                          f'{self.settings.command_timeout} s')
+        elif self.phase == RUNNING and self.settings.mode == 'lockstep' and now > self.deadline:
+            self._end(DiagnosticStatus.ERROR, 'timeout', f'no command for sample {self.plant.sample} '
+                      f'(t = {self.plant.time:.6f} s) within {self.settings.command_timeout} s')
+
+    def _begin(self) -> None:
+        self.phase = RUNNING
+        self._publish_state(effort=None)
+        self.deadline = time.monotonic() + self.settings.command_timeout
+        self._report(DiagnosticStatus.OK, 'started', 'episode started')
+        if self.settings.mode == 'realtime':
+            self.next_tick = time.monotonic() + self.settings.period
+            self.realtime_timer = self.create_timer(self.settings.period, self._tick,
+                                                    clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _end(self, level: bytes, event: str, message: str) -> None:
+        self.phase = ENDED
+        if self.realtime_timer is not None:
+            self.destroy_timer(self.realtime_timer)
+            self.realtime_timer = None
+        log = self.get_logger().info if level == DiagnosticStatus.OK else self.get_logger().error
+        log(message)
+        self._report(level, event, message)
+
+    def _report(self, level: bytes, event: str, message: str) -> None:
+        """A DiagnosticArray on /diagnostics; `event` (started, complete, diverged, timeout, no_start) is for programs."""
+        values = {'event': event, 'sample': self.plant.sample if self.plant else 0, 'mode': self.settings.mode,
+                  **self.counters}
+        if self.tick_lateness:
+            lateness = np.array(self.tick_lateness) * 1e3
+            values.update({'tick_lateness_p50_ms': float(np.percentile(lateness, 50)),
+                           'tick_lateness_p99_ms': float(np.percentile(lateness, 99)),
+                           'tick_lateness_max_ms': float(lateness.max())})
+        status = DiagnosticStatus(level=level, name='ddarm/plant', message=message, hardware_id='ddarm',
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = time_msg(self.plant.time if self.plant else 0.0)
+        self.diagnostics_publisher.publish(array)
+
+    # Samples ---------------------------------------------------------------------------------
+
+    def _publish_state(self, effort: np.ndarray | None) -> None:
+        t = self.plant.time
+        self.clock_publisher.publish(ClockMsg(clock=time_msg(t)))
+        self.state_publisher.publish(joint_state_msg(self.joints, t, self.plant.q, self.plant.v, effort))
+
+    def _on_command(self, msg: JointState) -> None:
+        try:
+            command = read_joint_state(msg, self.joints, self.settings.period, 'effort command',
+                                       need_state=False, need_effort=True)
+        except MessageError as error:
+            self.counters['refused_commands'] += 1
+            self.get_logger().error(f'refused: {error}')
+            return
+        if self.phase != RUNNING:
+            return
+        expected = self.plant.sample
+        if command.n < expected or (self.settings.mode == 'realtime' and command.n < self.latest_command_sample):
+            self.counters['stale_commands'] += 1
+            self.get_logger().warning(f'ignored a stale command for sample {command.n} (now at {expected})')
+            return
+        if command.n > expected:
+            self.counters['refused_commands'] += 1
+            self.get_logger().error(f'refused a command for sample {command.n} from the future (now at {expected})')
+            return
+        self.latest_command, self.latest_command_sample = command.effort, command.n
+        if self.settings.mode == 'lockstep':
+            self._step(command.effort)
+
+    def _step(self, command: np.ndarray) -> None:
+        """Apply a command over [t_n, t_{n+1}) and publish sample n + 1 with the applied effort."""
+        applied = self.plant.saturate(command)
+        if not self.plant.advance(applied):
+            n = self.plant.sample
+            self.state_publisher.publish(joint_state_msg(self.joints, (n + 1) * self.settings.period,
+                                                         effort=applied))
+            self._end(DiagnosticStatus.ERROR, 'diverged', f'diverged: the state left its bounds during sample {n}; '
+                      'the plant is frozen')
+            return
+        self._publish_state(applied)
+        self.deadline = time.monotonic() + self.settings.command_timeout
+        if self.settings.max_samples and self.plant.sample >= self.settings.max_samples:
+            self._end(DiagnosticStatus.OK, 'complete', f'episode complete: {self.plant.sample} periods')
+
+    def _tick(self) -> None:
+        """Real time: hold the latest command (zero until the first) and count what came late."""
+        now = time.monotonic()
+        self.tick_lateness.append(max(0.0, now - self.next_tick))
+        if now - self.next_tick > 0.5 * self.settings.period:
+            self.counters['deadline_misses'] += 1
+        self.next_tick += self.settings.period
+        if self.latest_command_sample != self.plant.sample:
+            self.counters['stale_commands'] += 1
+        held = self.latest_command if self.latest_command is not None else np.zeros(self.arm.dof)
+        self._step(held)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PlantNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (PlantError, ModelError, ParameterException) as error:
+        print(f'plant: refused to start: {error}', flush=True)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,207 @@
+"""The ROS 2 interface every ddarm node shares: topic names, QoS profiles, and message <-> array conversion.
+
+Conversions refuse bad messages with a MessageError naming the problem, before any
+number reaches the core.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Duration, Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+JOINT_STATES_TOPIC = 'joint_states'
+EFFORT_COMMAND_TOPIC = 'effort_command'
+REFERENCE_TOPIC = 'reference'
+CLOCK_TOPIC = '/clock'
+DIAGNOSTICS_TOPIC = '/diagnostics'
+
+# One profile per topic, used on both sides: a reliable subscriber hears nothing from a
+# best-effort publisher. Lockstep needs every sample, so states and commands are reliable.
+SAMPLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+# The programmed motion is latched: a controller started later still receives it.
+REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+
+# Refused before any work (FAULTS.md 6): far beyond a joint count or an episode length we run.
+MAX_JOINTS = 64
+MAX_REFERENCE_POINTS = 1_000_000
+
+
+class MessageError(ValueError):
+    """A message that cannot be used as it is; the text names the problem."""
+
+
+def time_msg(seconds: float) -> Time:
+    whole = math.floor(seconds)
+    nanoseconds = int(round((seconds - whole) * 1e9))
+    if nanoseconds == 1_000_000_000:
+        whole, nanoseconds = whole + 1, 0
+    return Time(sec=int(whole), nanosec=nanoseconds)
+
+
+def duration_msg(seconds: float) -> Duration:
+    stamp = time_msg(seconds)
+    return Duration(sec=stamp.sec, nanosec=stamp.nanosec)
+
+
+def seconds(stamp: Time | Duration) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def sample_index(stamp: Time, period: float) -> int:
+    """n for a stamp t_n = n Δ; refuses a negative stamp or one between sample instants."""
+    t = seconds(stamp)
+    n = round(t / period)
+    if n < 0 or abs(t - n * period) > 1e-6 * period + 1e-9:
+        raise MessageError(f'stamp {t:.9f} s is not a sample instant of period {period} s')
+    return int(n)
+
+
+def _finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
+    if len(values) != expected:
+        raise MessageError(f'{name}: {field} has {len(values)} values for {expected} joints')
+    array = np.array(values, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(array))
+    if bad.size:
+        raise MessageError(f'{name}: {field} is not finite at index {bad.tolist()}: {array[bad].tolist()}')
+    return array
+
+
+def joint_order(names, joints: list[str], what: str) -> np.ndarray:
+    """Indices that put the message's joints in our order; refuses unknown, missing or duplicate names."""
+    names = list(names)
+    if len(names) > MAX_JOINTS:
+        raise MessageError(f'{what}: {len(names)} joint names is more than the {MAX_JOINTS} allowed')
+    if len(set(names)) != len(names):
+        raise MessageError(f'{what}: duplicate joint names {names}')
+    unknown = sorted(set(names) - set(joints))
+    missing = [joint for joint in joints if joint not in names]
+    if unknown or missing:
+        raise MessageError(f'{what}: unknown joints {unknown}, missing joints {missing} (expected {joints})')
+    return np.array([names.index(joint) for joint in joints])
+
+
+@dataclass(frozen=True)
+class StateSample:
+    """A JointState read as the core wants it: sample index, and arrays in our joint order."""
+
+    n: int
+    q: np.ndarray
+    v: np.ndarray
+    effort: np.ndarray | None
+
+
+def read_joint_state(msg: JointState, joints: list[str], period: float, what: str = 'joint state',
+                     need_state: bool = True, need_effort: bool = False) -> StateSample:
+    """Validate and reorder a JointState by name; positions and velocities required unless told otherwise."""
+    order = joint_order(msg.name, joints, what)
+    n = sample_index(msg.header.stamp, period)
+    count = len(joints)
+
+    def field(values, label: str, needed: bool) -> np.ndarray | None:
+        if not needed and len(values) == 0:
+            return None
+        return _finite_array(values, what, label, count)[order]
+
+    return StateSample(n, field(msg.position, 'position', need_state), field(msg.velocity, 'velocity', need_state),
+                       field(msg.effort, 'effort', need_effort))
+
+
+def joint_state_msg(joints: list[str], t: float, q: np.ndarray | None = None, v: np.ndarray | None = None,
+                    effort: np.ndarray | None = None) -> JointState:
+    msg = JointState()
+    msg.header.stamp = time_msg(t)
+    msg.name = list(joints)
+    msg.position = [] if q is None else [float(x) for x in q]
+    msg.velocity = [] if v is None else [float(x) for x in v]
+    msg.effort = [] if effort is None else [float(x) for x in effort]
+    return msg
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The programmed motion at the samples j = 0 … k_max, with the nominal torque P^nom."""
+
+    times: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    nominal: np.ndarray
+
+    def point(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity and acceleration at sample n; after the last sample q_f is held at rest."""
+        if n < len(self.times):
+            return self.q[n], self.v[n], self.a[n]
+        rest = np.zeros_like(self.q[-1])
+        return self.q[-1], rest, rest
+
+
+def reference_msg(joints: list[str], times, q, v, a, nominal) -> JointTrajectory:
+    msg = JointTrajectory()
+    msg.joint_names = list(joints)
+    for j, t in enumerate(times):
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(x) for x in q[j]], velocities=[float(x) for x in v[j]],
+            accelerations=[float(x) for x in a[j]], effort=[float(x) for x in nominal[j]],
+            time_from_start=duration_msg(float(t))))
+    return msg
+
+
+def read_reference(msg: JointTrajectory, joints: list[str], period: float) -> Reference:
+    """Validate a reference: our joints by name, one point per sample from t = 0, every field finite."""
+    what = 'reference'
+    order = joint_order(msg.joint_names, joints, what)
+    if not msg.points:
+        raise MessageError(f'{what}: no points')
+    if len(msg.points) > MAX_REFERENCE_POINTS:
+        raise MessageError(f'{what}: {len(msg.points)} points is more than the {MAX_REFERENCE_POINTS} allowed')
+    count = len(joints)
+    fields = {'positions': [], 'velocities': [], 'accelerations': [], 'effort': []}
+    times = []
+    for j, point in enumerate(msg.points):
+        t = seconds(point.time_from_start)
+        if abs(t - j * period) > 1e-6 * period + 1e-9:
+            raise MessageError(f'{what}: point {j} is at {t} s, not at sample time {j * period} s')
+        times.append(j * period)
+        for name, values in fields.items():
+            values.append(_finite_array(getattr(point, name), f'{what} point {j}', name, count)[order])
+    return Reference(np.array(times), *(np.array(fields[name]) for name in fields))
+
+
+def descriptor(description: str, *, floating: tuple[float, float] | None = None,
+               integer: tuple[int, int] | None = None, read_only: bool = False):
+    """A ParameterDescriptor whose range rclpy itself enforces."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    described = ParameterDescriptor(description=description, read_only=read_only)
+    if floating is not None:
+        described.floating_point_range = [FloatingPointRange(from_value=float(floating[0]),
+                                                             to_value=float(floating[1]))]
+    if integer is not None:
+        described.integer_range = [IntegerRange(from_value=int(integer[0]), to_value=int(integer[1]), step=1)]
+    return described
+
+
+def undeclared_overrides(node) -> list[str]:
+    """Parameters given to the node (YAML or -p) that it never declared: most likely typos."""
+    declared = set(node._parameters)
+    return sorted(name for name in node._parameter_overrides
+                  if name not in declared and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
+
+
+def proposed_values(node, changes) -> dict:
+    """The node's parameter values as they would be after `changes` (for cross-parameter checks)."""
+    values = {name: parameter.value for name, parameter in node._parameters.items()}
+    values.update({parameter.name: parameter.value for parameter in changes})
+    return values
