@@ -14,8 +14,13 @@ setup(
     license='Apache-2.0',
     python_requires='>=3.10',
     packages=find_packages(include=['ddarm_sim', 'ddarm_control', 'ddarm_tuner']),
+    # ros2 run finds a package through its ament index marker and runs lib/<package>/<executable>:
+    # one marker and one executable folder per Python package the user names.
     data_files=[
-        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        ('share/ament_index/resource_index/packages',
+         [f'resource/{name}' for name in (PACKAGE, 'ddarm_sim', 'ddarm_control', 'ddarm_tuner')]),
+        ('lib/ddarm_sim', ['scripts/plant']),
+        ('lib/ddarm_control', ['scripts/pd_gravity', 'scripts/computed_torque']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', sorted(glob('config/*'))),
     ],

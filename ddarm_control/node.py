@@ -57,6 +57,8 @@ class ControllerNode(Node):
             raise GainError(f'controller must be one of {CONTROLLERS}, got {law!r}')
         super().__init__(law, **kwargs)
         self.law_name = law
+        self.incompatible_qos_events = 0
+        self.refused_messages = 0
         self._declare_parameters()
         values = proposed_values(self, ())
         self.model = Arm.from_urdf(values['urdf'] or None)
@@ -152,6 +154,7 @@ class ControllerNode(Node):
                 f'delay {self.controller.delay} sample(s), period {self.period} s')
 
     def _incompatible_qos(self, event) -> None:
+        self.incompatible_qos_events += 1
         self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
                                 'samples will not flow; use the profiles of ddarm_sim.ros_interface')
 
@@ -159,6 +162,7 @@ class ControllerNode(Node):
         try:
             self.reference = read_reference(msg, self.joints, self.period)
         except MessageError as error:
+            self.refused_messages += 1
             self.get_logger().error(f'refused: {error}')
             return
         self._set_gains(proposed_values(self, ()))
@@ -179,12 +183,14 @@ class ControllerNode(Node):
         try:
             state = read_joint_state(msg, self.joints, self.period)
         except MessageError as error:
+            self.refused_messages += 1
             self.get_logger().error(f'refused, no command sent: {error}')
             return
         if state.n == 0:
             self.controller.reset()
             self.waiting.clear()
         elif self.last_sample is not None and state.n <= self.last_sample:
+            self.refused_messages += 1
             self.get_logger().error(f'refused a state for sample {state.n}: sample {self.last_sample} came already')
             return
         elif self.last_sample is not None and state.n > self.last_sample + 1:

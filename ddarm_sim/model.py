@@ -17,11 +17,12 @@ class ModelError(ValueError):
 
 
 def default_urdf_path() -> Path:
-    """The arm's URDF: from the source tree, else from the installed share folder."""
-    candidates = [
-        Path(__file__).resolve().parent.parent / 'config' / URDF_NAME,
-        Path(sys.prefix) / 'share' / 'ddarm' / 'config' / URDF_NAME,
-    ]
+    """The arm's URDF: from the source tree, else from the share folder of the prefix this module is installed in."""
+    here = Path(__file__).resolve().parent
+    candidates = [here.parent / 'config' / URDF_NAME]
+    if len(here.parents) > 3:  # <prefix>/lib/pythonX.Y/site-packages/ddarm_sim (colcon or pip)
+        candidates.append(here.parents[3] / 'share' / 'ddarm' / 'config' / URDF_NAME)
+    candidates.append(Path(sys.prefix) / 'share' / 'ddarm' / 'config' / URDF_NAME)
     for candidate in candidates:
         if candidate.is_file():
             return candidate

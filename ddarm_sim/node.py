@@ -98,6 +98,7 @@ class PlantNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('plant', **kwargs)
+        self.incompatible_qos_events = 0
         self._declare_parameters()
         self.arm = Arm.from_urdf(self.get_parameter('urdf').value or None)
         self.joints = self.arm.joint_names
@@ -171,6 +172,7 @@ class PlantNode(Node):
         return SetParametersResult(successful=True)
 
     def _incompatible_qos(self, event) -> None:
+        self.incompatible_qos_events += 1
         self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
                                 'samples will not flow; use the profiles of ddarm_sim.ros_interface')
 

@@ -135,19 +135,20 @@ def build_parser() -> argparse.ArgumentParser:
                          help='run through the ROS 2 graph on the wall clock (implies --ros)')
     episode.set_defaults(handler=command_episode)
     plant = commands.add_parser('plant', help='start the plant node (then --ros-args ...)')
-    plant.add_argument('ros_arguments', nargs=argparse.REMAINDER)
-    plant.set_defaults(handler=command_plant)
+    plant.set_defaults(handler=command_plant, takes_ros_arguments=True)
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
     controller.add_argument('law', choices=CONTROLLERS)
-    controller.add_argument('ros_arguments', nargs=argparse.REMAINDER)
-    controller.set_defaults(handler=command_controller)
+    controller.set_defaults(handler=command_controller, takes_ros_arguments=True)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
-    args.argv = argv
+    parser = build_parser()
+    args, ros_arguments = parser.parse_known_args(argv)
+    if ros_arguments and not getattr(args, 'takes_ros_arguments', False):
+        parser.error(f'unrecognized arguments: {" ".join(ros_arguments)}')
+    args.ros_arguments, args.argv = ros_arguments, argv
     try:
         return args.handler(args)
     except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError) as error:

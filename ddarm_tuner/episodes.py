@@ -131,6 +131,7 @@ class EpisodeResult:
     torque: np.ndarray  # what the actuators applied (after saturation)
     diverged_at: int | None = None
     indices: dict = field(default_factory=dict)
+    plant_report: dict | None = None  # over ROS: the plant node's end-of-episode diagnostics
 
     @property
     def errors(self) -> np.ndarray:
@@ -158,6 +159,7 @@ class EpisodeResult:
             'max_abs_nominal_torque': np.max(np.abs(self.plan.nominal), axis=0).tolist(),
             'torque_limit': None if self.plan.torque_limit is None else self.plan.torque_limit.tolist(),
             'spec': self.spec.to_dict(),
+            **({'plant_report': self.plant_report} if self.plant_report is not None else {}),
         }
 
 

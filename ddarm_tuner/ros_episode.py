@@ -62,9 +62,14 @@ class Recording:
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
     diverged_at: int | None = None
-    ended: bool = False
+    last_state_heard: bool = False
+    plant_report: dict | None = None  # the plant's end-of-episode diagnostics (complete or diverged)
     error: str | None = None
     diagnostics: list = field(default_factory=list)
+
+    @property
+    def ended(self) -> bool:
+        return self.error is not None or (self.last_state_heard and self.plant_report is not None)
 
 
 class EpisodeDriver(Node):
@@ -90,10 +95,10 @@ class EpisodeDriver(Node):
             return
         if sample.q is None:  # the plant diverged during the period before this stamp
             self.recording.diverged_at = sample.n
-            self.recording.ended = True
+            self.recording.last_state_heard = True
         self.recording.states[sample.n] = sample
         if sample.n >= self.plan.k_max + 1:
-            self.recording.ended = True
+            self.recording.last_state_heard = True
 
     def _on_command(self, msg: JointState) -> None:
         try:
@@ -112,7 +117,8 @@ class EpisodeDriver(Node):
             self.recording.diagnostics.append({'message': status.message, **values})
             if values.get('event') in ('timeout', 'no_start'):
                 self.recording.error = status.message
-                self.recording.ended = True
+            elif values.get('event') in ('complete', 'diverged'):
+                self.recording.plant_report = values
 
     def _spin_until(self, executor, done, deadline: float, what: str, alive=lambda: None) -> None:
         while not done():
@@ -158,7 +164,7 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
         spec, plan, q=np.array([s.q for s in states]), v=np.array([s.v for s in states]),
         command=np.array([recording.commands[n] for n in range(last + 1)]),
         torque=np.array([recording.states[n + 1].effort for n in range(last + 1)]),
-        diverged_at=recording.diverged_at)
+        diverged_at=recording.diverged_at, plant_report=recording.plant_report)
     result.indices = score(plan, result.errors, result.torque)
     return result
 
@@ -216,6 +222,4 @@ def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float 
             driver.destroy_node()
             nodes.stop()
             rclpy.try_shutdown(context=context)
-    result = result_from_recording(spec, plan, recording)
-    result.diagnostics = recording.diagnostics
-    return result
+    return result_from_recording(spec, plan, recording)

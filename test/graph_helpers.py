@@ -1,0 +1,47 @@
+"""Shared by the graph tests: the plant and a controller as nodes of this process, driven by the episode driver."""
+
+import time
+
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from ddarm_control.node import ControllerNode
+from ddarm_sim.node import PlantNode
+from ddarm_tuner.episodes import plan_episode
+from ddarm_tuner.ros_episode import EpisodeDriver, node_parameters, result_from_recording
+
+
+def overrides(values: dict) -> list:
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+class InProcessGraph:
+    """Plant, controller and driver nodes under one executor, in one context."""
+
+    def __init__(self, context, spec, plant_extra=None, controller_extra=None):
+        self.spec, self.plan = spec, plan_episode(spec)
+        parameters = node_parameters(spec, self.plan)
+        plant_values = {**parameters['plant']['ros__parameters'], **(plant_extra or {})}
+        controller_values = {**parameters[spec.controller]['ros__parameters'], **(controller_extra or {})}
+        self.plant = PlantNode(context=context, parameter_overrides=overrides(plant_values))
+        self.controller = ControllerNode(spec.controller, context=context,
+                                         parameter_overrides=overrides(controller_values))
+        self.driver = EpisodeDriver(spec, self.plan, context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        for node in (self.plant, self.controller, self.driver):
+            self.executor.add_node(node)
+
+    def run(self, timeout=60.0):
+        recording = self.driver.run(self.executor, timeout)
+        return result_from_recording(self.spec, self.plan, recording)
+
+    def spin_until(self, condition, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, 'condition not met in time'
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def close(self):
+        self.executor.shutdown()
+        for node in (self.plant, self.controller, self.driver):
+            node.destroy_node()
