@@ -79,13 +79,13 @@ class ControllerNode(Node):
 
         self.command_publisher = self.create_publisher(
             JointState, EFFORT_COMMAND_TOPIC, SAMPLE_QOS,
-            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos))
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.state_subscription = self.create_subscription(
             JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reference_subscription = self.create_subscription(
             JointTrajectory, REFERENCE_TOPIC, self._on_reference, REFERENCE_QOS,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         self.last_sample: int | None = None
         self.waiting: deque = deque(maxlen=MAX_WAITING_STATES)

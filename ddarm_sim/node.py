@@ -28,6 +28,7 @@ from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DI
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 
 MODES = ('lockstep', 'realtime')
+WATCHDOG_PERIOD = 0.05  # s
 IDLE, STARTING, RUNNING, ENDED = 'idle', 'starting', 'running', 'ended'
 
 
@@ -107,15 +108,16 @@ class PlantNode(Node):
 
         self.state_publisher = self.create_publisher(
             JointState, JOINT_STATES_TOPIC, SAMPLE_QOS,
-            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos))
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         self.command_subscription = self.create_subscription(
             JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos))
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         wall = Clock(clock_type=ClockType.STEADY_TIME)
-        self.watchdog = self.create_timer(0.01, self._watch, clock=wall)
+        # Checks start-up and command timeouts; each wake costs a lockstep sample's worth of executor time.
+        self.watchdog = self.create_timer(WATCHDOG_PERIOD, self._watch, clock=wall)
         self.realtime_timer = None
 
         self.phase = IDLE
@@ -124,7 +126,8 @@ class PlantNode(Node):
         self.latest_command_sample = -1
         self.deadline = 0.0
         self.counters = {'refused_commands': 0, 'stale_commands': 0, 'deadline_misses': 0}
-        self.tick_lateness: list[float] = []
+        self.tick_times: list[float] = []
+        self.began = 0.0
         unknown = undeclared_overrides(self)
         if unknown:
             raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
@@ -186,7 +189,7 @@ class PlantNode(Node):
         self.plant = Plant(arm, self.settings.options, self.settings.q0, self.settings.v0)
         self.latest_command, self.latest_command_sample = None, -1
         self.counters = dict.fromkeys(self.counters, 0)
-        self.tick_lateness = []
+        self.tick_times = []
         if self.realtime_timer is not None:
             self.destroy_timer(self.realtime_timer)
             self.realtime_timer = None
@@ -220,6 +223,7 @@ class PlantNode(Node):
 
     def _begin(self) -> None:
         self.phase = RUNNING
+        self.began = time.monotonic()
         self._publish_state(effort=None)
         self.deadline = time.monotonic() + self.settings.command_timeout
         self._report(DiagnosticStatus.OK, 'started', 'episode started')
@@ -240,12 +244,12 @@ class PlantNode(Node):
     def _report(self, level: bytes, event: str, message: str) -> None:
         """A DiagnosticArray on /diagnostics; `event` (started, complete, diverged, timeout, no_start) is for programs."""
         values = {'event': event, 'sample': self.plant.sample if self.plant else 0, 'mode': self.settings.mode,
-                  **self.counters}
-        if self.tick_lateness:
-            lateness = np.array(self.tick_lateness) * 1e3
-            values.update({'tick_lateness_p50_ms': float(np.percentile(lateness, 50)),
-                           'tick_lateness_p99_ms': float(np.percentile(lateness, 99)),
-                           'tick_lateness_max_ms': float(lateness.max())})
+                  'wall_time_s': time.monotonic() - self.began if self.phase != STARTING else 0.0, **self.counters}
+        if len(self.tick_times) > 1:
+            jitter = np.abs(np.diff(self.tick_times) - self.settings.period) * 1e3
+            values.update({'period_jitter_p50_ms': float(np.percentile(jitter, 50)),
+                           'period_jitter_p99_ms': float(np.percentile(jitter, 99)),
+                           'period_jitter_max_ms': float(jitter.max())})
         status = DiagnosticStatus(level=level, name='ddarm/plant', message=message, hardware_id='ddarm',
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         array = DiagnosticArray(status=[status])
@@ -298,9 +302,13 @@ class PlantNode(Node):
             self._end(DiagnosticStatus.OK, 'complete', f'episode complete: {self.plant.sample} periods')
 
     def _tick(self) -> None:
-        """Real time: hold the latest command (zero until the first) and count what came late."""
+        """Real time: hold the latest command (zero until the first) and count what came late.
+
+        A deadline miss is a tick more than half a period behind its slot; a stale command is a
+        tick whose latest command is not for the current sample (it is held all the same).
+        """
         now = time.monotonic()
-        self.tick_lateness.append(max(0.0, now - self.next_tick))
+        self.tick_times.append(now)
         if now - self.next_tick > 0.5 * self.settings.period:
             self.counters['deadline_misses'] += 1
         self.next_tick += self.settings.period

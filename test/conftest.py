@@ -9,11 +9,11 @@ import pytest
 
 # Domain IDs whose Fast DDS ports stay valid; a lock file per ID tells running processes apart.
 _DOMAIN_IDS = range(1, 200)
-_held_lock = None
+_held_locks = []
 
 
-def _claim_domain_id() -> int:
-    global _held_lock
+def claim_domain_id() -> int:
+    """A domain ID no other running test process holds, reserved until this process exits."""
     folder = Path(tempfile.gettempdir()) / 'ddarm-test-domains'
     folder.mkdir(exist_ok=True)
     start = os.getpid() % len(_DOMAIN_IDS)
@@ -25,13 +25,13 @@ def _claim_domain_id() -> int:
         except BlockingIOError:
             handle.close()
             continue
-        _held_lock = handle  # held (and so the ID reserved) until this process exits
+        _held_locks.append(handle)
         return domain_id
     raise RuntimeError('every test ROS domain ID is taken by another running test process')
 
 
 def pytest_configure(config):
-    os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+    os.environ['ROS_DOMAIN_ID'] = str(claim_domain_id())
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 

@@ -1,7 +1,10 @@
 """Bad input on the graph (FAULTS.md 1-11, 13): refused with the problem named, nothing integrated, no crash."""
 
+import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -22,6 +25,7 @@ from ddarm_sim.node import ENDED, PlantNode
 from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg, read_reference,
                                      reference_msg)
 from ddarm_tuner.episodes import EpisodeSpec, plan_episode
+from conftest import claim_domain_id
 from graph_helpers import overrides
 
 JOINTS = ['joint1', 'joint2', 'joint3']
@@ -247,3 +251,25 @@ def test_the_config_files_load(law):
         plant.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+
+def test_a_graph_on_another_domain_is_never_heard(ros_context, tmp_path):
+    """FAULTS.md 14: with localhost discovery, distinct domain IDs do not cross."""
+    parameters = tmp_path / 'plant.yaml'
+    parameters.write_text('plant:\n  ros__parameters:\n    command_timeout: 2.0\n')
+    environment = {**os.environ, 'ROS_DOMAIN_ID': str(claim_domain_id())}
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '--params-file',
+                                str(parameters)], env=environment, stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
+    lines = []
+    reader = threading.Thread(target=lambda: lines.extend(process.stdout), daemon=True)
+    reader.start()
+    probe = Probe(ros_context)  # subscribes to joint_states on this process's domain
+    try:
+        probe.spin_until(lambda: any('no start: 0 of 1' in line for line in lines), timeout=30)
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=20)
+        probe.close()
+    assert probe.states == []
