@@ -23,12 +23,14 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 
 # One profile per topic, used on both sides: a reliable subscriber hears nothing from a
 # best-effort publisher. Lockstep needs every sample, so states and commands are reliable.
-SAMPLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+# Keep-all: a slow recorder holds the publisher back instead of losing samples.
+SAMPLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 # The programmed motion is latched: a controller started later still receives it.
 REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
-CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+# Reliable on our side so the recorder keeps every tick; best-effort /clock subscribers still match.
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)

@@ -93,10 +93,13 @@ def print_summary(summary: dict) -> None:
 def command_episode(args: argparse.Namespace) -> int:
     spec = episode_spec(args)
     started = time.perf_counter()
+    if args.bag and not (args.ros or args.realtime):
+        raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
     if args.ros or args.realtime:
         from ddarm_tuner.ros_episode import run_graph_episode  # ROS only when asked for
 
-        result = run_graph_episode(spec, realtime=args.realtime)
+        result = run_graph_episode(spec, realtime=args.realtime, bag=args.bag, storage=args.storage,
+                                   command=shlex.join(['ddarm', *args.argv]))
         transport = 'ros-realtime' if args.realtime else 'ros-lockstep'
     else:
         result = run_episode(spec)
@@ -108,6 +111,25 @@ def command_episode(args: argparse.Namespace) -> int:
     else:
         print_summary(summary)
     return 0
+
+
+def command_score(args: argparse.Namespace) -> int:
+    from ddarm_tuner.bags import BagError, score_bag
+
+    failures = 0
+    for bag in args.bags:
+        try:
+            summary = score_bag(bag)
+        except BagError as error:
+            failures += 1
+            print(f'ddarm score: {error}', file=sys.stderr)
+            continue
+        if args.json:
+            print(json.dumps(summary))
+        else:
+            print(bag)
+            print_summary(summary)
+    return 2 if failures else 0
 
 
 def command_plant(args: argparse.Namespace) -> int:
@@ -133,7 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
                          help='run through the ROS 2 graph: plant and controller processes, lockstep over DDS')
     episode.add_argument('--realtime', action='store_true',
                          help='run through the ROS 2 graph on the wall clock (implies --ros)')
+    episode.add_argument('--bag', metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
+    episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     episode.set_defaults(handler=command_episode)
+    score = commands.add_parser('score', help='score recorded episodes from their bags alone')
+    score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')
+    score.add_argument('--json', action='store_true', help='one JSON object per bag, one per line')
+    score.set_defaults(handler=command_score)
     plant = commands.add_parser('plant', help='start the plant node (then --ros-args ...)')
     plant.set_defaults(handler=command_plant, takes_ros_arguments=True)
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')

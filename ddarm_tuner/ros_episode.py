@@ -16,13 +16,16 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC,
-                                     REFERENCE_QOS, REFERENCE_TOPIC, SAMPLE_QOS, MessageError, read_joint_state,
-                                     reference_msg)
+from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
+                                     EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
+                                     SAMPLE_QOS, MessageError, read_joint_state, reference_msg)
+from ddarm_tuner.bags import EpisodeBagWriter
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, load_arm, plan_episode, score
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
@@ -72,22 +75,41 @@ class Recording:
         return self.error is not None or (self.last_state_heard and self.plant_report is not None)
 
 
-class EpisodeDriver(Node):
-    """Publishes the programmed motion, resets controller then plant, and records the episode's samples."""
+def _stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
-    def __init__(self, spec: EpisodeSpec, plan: EpisodePlan, plant_node: str = 'plant', **kwargs) -> None:
+
+class EpisodeDriver(Node):
+    """Publishes the programmed motion, resets controller then plant, and records the episode's samples.
+
+    With a bag writer, every message it publishes or hears goes into the bag as the CDR that
+    crossed DDS, timestamped with its simulated time.
+    """
+
+    def __init__(self, spec: EpisodeSpec, plan: EpisodePlan, plant_node: str = 'plant',
+                 bag: EpisodeBagWriter | None = None, **kwargs) -> None:
         super().__init__('ddarm_episode_driver', **kwargs)
-        self.spec, self.plan = spec, plan
+        self.spec, self.plan, self.bag = spec, plan, bag
         self.joints = load_arm(spec.urdf).joint_names
         self.recording = Recording()
         self.reference_publisher = self.create_publisher(JointTrajectory, REFERENCE_TOPIC, REFERENCE_QOS)
         self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS)
         self.create_subscription(JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DIAGNOSTICS_QOS)
+        if bag is not None:
+            self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS)
         self.plant_reset = self.create_client(Trigger, f'/{plant_node}/reset')
         self.controller_reset = self.create_client(Trigger, f'/{spec.controller}/reset')
 
+    def _record(self, topic: str, stamp, msg) -> None:
+        if self.bag is not None:
+            self.bag.write(topic, _stamp_ns(stamp), serialize_message(msg))
+
+    def _on_clock(self, msg: Clock) -> None:
+        self._record(CLOCK_TOPIC, msg.clock, msg)
+
     def _on_state(self, msg: JointState) -> None:
+        self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
         try:
             sample = read_joint_state(msg, self.joints, self.spec.period, need_state=False)
         except MessageError as error:
@@ -101,6 +123,7 @@ class EpisodeDriver(Node):
             self.recording.last_state_heard = True
 
     def _on_command(self, msg: JointState) -> None:
+        self._record('/' + EFFORT_COMMAND_TOPIC, msg.header.stamp, msg)
         try:
             sample = read_joint_state(msg, self.joints, self.spec.period, 'command', need_state=False,
                                       need_effort=True)
@@ -110,6 +133,7 @@ class EpisodeDriver(Node):
         self.recording.commands[sample.n] = sample.effort
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        self._record(DIAGNOSTICS_TOPIC, msg.header.stamp, msg)
         for status in msg.status:
             if status.name != 'ddarm/plant':
                 continue
@@ -137,8 +161,9 @@ class EpisodeDriver(Node):
         """Drive one episode; `alive` raises if a node process has died."""
         deadline = time.monotonic() + timeout
         plan = self.plan
-        self.reference_publisher.publish(reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref,
-                                                       plan.a_ref, plan.nominal))
+        reference = reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref, plan.a_ref, plan.nominal)
+        self.reference_publisher.publish(reference)
+        self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
         reply = self._call(executor, self.controller_reset, deadline, alive)
         while not reply.success:  # the latched reference is still on its way
             executor.spin_once(timeout_sec=0.01)
@@ -205,21 +230,45 @@ class NodeProcesses:
                 process.wait()
 
 
-def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0) -> EpisodeResult:
-    """Run `spec` through plant and controller processes over DDS and score what the driver recorded."""
+def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
+    """The configuration a bag carries, so that the bag alone says what was run."""
+    return {'spec': spec.to_dict(), 'joints': load_arm(spec.urdf).joint_names, 'k_max': plan.k_max,
+            'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
+            'transport': transport, 'command': command,
+            'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'))}
+
+
+def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
+                      bag: Path | str | None = None, storage: str = 'mcap', command: str | None = None,
+                      ) -> EpisodeResult:
+    """Run `spec` through plant and controller processes over DDS and score what the driver recorded.
+
+    With `bag`, the episode is also recorded there; the bag is closed (and marked complete or
+    incomplete) whatever happens, so a killed or failed run never passes for a good one.
+    """
     plan = plan_episode(spec)
+    transport = 'ros-realtime' if realtime else 'ros-lockstep'
+    writer = None if bag is None else EpisodeBagWriter(bag, episode_record(spec, plan, transport, command),
+                                                       storage)
     context = rclpy.Context()
     rclpy.init(context=context)
-    with tempfile.TemporaryDirectory(prefix='ddarm-episode-') as folder:
-        nodes = NodeProcesses(spec, plan, Path(folder), 'realtime' if realtime else 'lockstep')
-        driver = EpisodeDriver(spec, plan, context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(driver)
-        try:
-            recording = driver.run(executor, timeout, alive=nodes.check_alive)
-        finally:
-            executor.shutdown()
-            driver.destroy_node()
-            nodes.stop()
-            rclpy.try_shutdown(context=context)
-    return result_from_recording(spec, plan, recording)
+    complete = False
+    try:
+        with tempfile.TemporaryDirectory(prefix='ddarm-episode-') as folder:
+            nodes = NodeProcesses(spec, plan, Path(folder), transport.removeprefix('ros-'))
+            driver = EpisodeDriver(spec, plan, bag=writer, context=context)
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(driver)
+            try:
+                recording = driver.run(executor, timeout, alive=nodes.check_alive)
+            finally:
+                executor.shutdown()
+                driver.destroy_node()
+                nodes.stop()
+        result = result_from_recording(spec, plan, recording)
+        complete = True
+    finally:
+        rclpy.try_shutdown(context=context)
+        if writer is not None:
+            writer.close(complete)
+    return result

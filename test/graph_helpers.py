@@ -18,7 +18,7 @@ def overrides(values: dict) -> list:
 class InProcessGraph:
     """Plant, controller and driver nodes under one executor, in one context."""
 
-    def __init__(self, context, spec, plant_extra=None, controller_extra=None):
+    def __init__(self, context, spec, plant_extra=None, controller_extra=None, bag=None):
         self.spec, self.plan = spec, plan_episode(spec)
         parameters = node_parameters(spec, self.plan)
         plant_values = {**parameters['plant']['ros__parameters'], **(plant_extra or {})}
@@ -26,7 +26,7 @@ class InProcessGraph:
         self.plant = PlantNode(context=context, parameter_overrides=overrides(plant_values))
         self.controller = ControllerNode(spec.controller, context=context,
                                          parameter_overrides=overrides(controller_values))
-        self.driver = EpisodeDriver(spec, self.plan, context=context)
+        self.driver = EpisodeDriver(spec, self.plan, bag=bag, context=context)
         self.executor = SingleThreadedExecutor(context=context)
         for node in (self.plant, self.controller, self.driver):
             self.executor.add_node(node)
