@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from collections import deque
 
@@ -171,12 +172,17 @@ class ControllerNode(Node):
             self._command(self.waiting.popleft())
 
     def _on_reset(self, request, response):
+        """Clear the delay buffer; the reply (JSON) says what the next episode will run with."""
         self.controller.reset()
         self.last_sample = None
         self.waiting.clear()
         response.success = self.reference is not None and self.gains_ready
-        response.message = (f'ready: {self._describe()}, reference of {len(self.reference.times)} samples'
-                            if response.success else 'not ready: no reference received yet')
+        law = self.controller.law
+        response.message = json.dumps({
+            'ready': response.success, 'kp': law.kp.tolist(), 'kv': law.kv.tolist(),
+            'delay': self.controller.delay, 'period': self.period,
+            'reference_samples': 0 if self.reference is None else len(self.reference.times),
+            'reference_final': None if self.reference is None else self.reference.q[-1].tolist()})
         return response
 
     def _on_state(self, msg: JointState) -> None:

@@ -1,7 +1,10 @@
-"""One episode run through the ROS 2 graph: plant and controller nodes, driven and recorded by a driver node."""
+"""Episodes run through the ROS 2 graph: a driver node configures the plant and a controller through
+their parameter services, publishes the programmed motion, runs the episode, records it (optionally
+as a bag) and scores what it heard."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -16,12 +19,15 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
+from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, MessageError, read_joint_state, reference_msg)
@@ -30,25 +36,29 @@ from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, load_a
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
+# The plant starts an episode once this many nodes listen to it: the controller and the driver.
+GRAPH_SUBSCRIBERS = 2
 
 
 class GraphEpisodeError(RuntimeError):
     """An episode over ROS that did not complete; the text says which sample and why."""
 
 
-def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep',
-                    required_subscribers: int = 2) -> dict:
-    """The parameter YAML (node: ros__parameters:) that makes the plant and controller run `spec`."""
+def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep') -> dict:
+    """The parameters (as a node: ros__parameters: mapping) that make the plant and controller run `spec`.
+
+    Per-joint options left out mean "none"; set through the parameter services, they are empty arrays.
+    """
     plant = {
         'mode': mode, 'period': spec.period, 'substeps': spec.substeps, 'command_timeout': COMMAND_TIMEOUT,
-        'required_subscribers': required_subscribers, 'max_samples': plan.k_max + 1, 'autostart': False,
+        'required_subscribers': GRAPH_SUBSCRIBERS, 'max_samples': plan.k_max + 1, 'autostart': False,
         'trajectory': spec.trajectory, 'duration': spec.duration, 'tau': spec.tau,
     }
     optional = {'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
                 'viscous_friction': spec.viscous_friction, 'coulomb_friction': spec.coulomb_friction,
                 'external_torque': spec.external_torque, 'mass_scale': spec.mass_scale}
     plant.update({name: [float(x) for x in value] for name, value in optional.items() if value is not None})
-    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'compute_delay_steps': spec.delay,
+    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0, 'compute_delay_steps': spec.delay,
                   'period': spec.period}
     # The in-process runner gives computed torque the plant's friction as its model F̂; so does this.
     controller.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')
@@ -58,17 +68,28 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
 
 
+def _service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
+    """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
+    parameters = [Parameter(name, value=value) for name, value in values.items() if name != 'urdf']
+    parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
+    return parameters
+
+
+PLANT_OPTIONAL = ('torque_limit', 'viscous_friction', 'coulomb_friction', 'external_torque', 'mass_scale')
+CONTROLLER_OPTIONAL = ('viscous_friction', 'coulomb_friction')
+
+
 @dataclass
 class Recording:
-    """What the driver heard: states (with applied effort) and commands, by sample index."""
+    """What the driver heard during one episode: states (with applied effort) and commands, by sample."""
 
+    k_max: int
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
     diverged_at: int | None = None
     last_state_heard: bool = False
     plant_report: dict | None = None  # the plant's end-of-episode diagnostics (complete or diverged)
     error: str | None = None
-    diagnostics: list = field(default_factory=list)
 
     @property
     def ended(self) -> bool:
@@ -79,102 +100,144 @@ def _stamp_ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
-class EpisodeDriver(Node):
-    """Publishes the programmed motion, resets controller then plant, and records the episode's samples.
+class GraphDriver(Node):
+    """Runs episodes on a running plant and controller node, one at a time, and records them.
 
-    With a bag writer, every message it publishes or hears goes into the bag as the CDR that
-    crossed DDS, timestamped with its simulated time.
+    With a bag writer, every message it publishes or hears during the episode goes into the bag
+    as the CDR that crossed DDS, timestamped with its simulated time.
     """
 
-    def __init__(self, spec: EpisodeSpec, plan: EpisodePlan, plant_node: str = 'plant',
-                 bag: EpisodeBagWriter | None = None, **kwargs) -> None:
-        super().__init__('ddarm_episode_driver', **kwargs)
-        self.spec, self.plan, self.bag = spec, plan, bag
-        self.joints = load_arm(spec.urdf).joint_names
-        self.recording = Recording()
+    def __init__(self, name: str = 'ddarm_episode_driver', plant_node: str = 'plant', **kwargs) -> None:
+        super().__init__(name, **kwargs)
+        self.plant_node = plant_node
+        self.joints = load_arm(None).joint_names
+        self.recording: Recording | None = None
+        self.bag: EpisodeBagWriter | None = None
+        self.period = 0.01
         self.reference_publisher = self.create_publisher(JointTrajectory, REFERENCE_TOPIC, REFERENCE_QOS)
         self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS)
         self.create_subscription(JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS)
         self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DIAGNOSTICS_QOS)
-        if bag is not None:
-            self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS)
-        self.plant_reset = self.create_client(Trigger, f'/{plant_node}/reset')
-        self.controller_reset = self.create_client(Trigger, f'/{spec.controller}/reset')
+        self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS)
+        self.parameter_clients = {plant_node: AsyncParameterClient(self, plant_node)}
+        self.reset_clients = {plant_node: self.create_client(Trigger, f'/{plant_node}/reset')}
+        for law in CONTROLLERS:
+            self.parameter_clients[law] = AsyncParameterClient(self, law)
+            self.reset_clients[law] = self.create_client(Trigger, f'/{law}/reset')
+
+    # What the graph says --------------------------------------------------------------------
 
     def _record(self, topic: str, stamp, msg) -> None:
-        if self.bag is not None:
+        if self.bag is not None and self.recording is not None:
             self.bag.write(topic, _stamp_ns(stamp), serialize_message(msg))
 
     def _on_clock(self, msg: Clock) -> None:
         self._record(CLOCK_TOPIC, msg.clock, msg)
 
     def _on_state(self, msg: JointState) -> None:
-        self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
+        if self.recording is None:
+            return
         try:
-            sample = read_joint_state(msg, self.joints, self.spec.period, need_state=False)
+            sample = read_joint_state(msg, self.joints, self.period, need_state=False)
         except MessageError as error:
             self.get_logger().error(f'unusable joint state: {error}')
             return
+        self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
         if sample.q is None:  # the plant diverged during the period before this stamp
             self.recording.diverged_at = sample.n
             self.recording.last_state_heard = True
         self.recording.states[sample.n] = sample
-        if sample.n >= self.plan.k_max + 1:
+        if sample.n >= self.recording.k_max + 1:
             self.recording.last_state_heard = True
 
     def _on_command(self, msg: JointState) -> None:
-        self._record('/' + EFFORT_COMMAND_TOPIC, msg.header.stamp, msg)
+        if self.recording is None:
+            return
         try:
-            sample = read_joint_state(msg, self.joints, self.spec.period, 'command', need_state=False,
+            sample = read_joint_state(msg, self.joints, self.period, 'command', need_state=False,
                                       need_effort=True)
         except MessageError as error:
             self.get_logger().error(f'unusable command: {error}')
             return
+        if sample.n > self.recording.k_max:
+            return  # the answer to the final state: never applied, not part of the episode
+        self._record('/' + EFFORT_COMMAND_TOPIC, msg.header.stamp, msg)
         self.recording.commands[sample.n] = sample.effort
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        if self.recording is None:
+            return
         self._record(DIAGNOSTICS_TOPIC, msg.header.stamp, msg)
         for status in msg.status:
             if status.name != 'ddarm/plant':
                 continue
             values = {pair.key: pair.value for pair in status.values}
-            self.recording.diagnostics.append({'message': status.message, **values})
             if values.get('event') in ('timeout', 'no_start'):
                 self.recording.error = status.message
             elif values.get('event') in ('complete', 'diverged'):
                 self.recording.plant_report = values
 
-    def _spin_until(self, executor, done, deadline: float, what: str, alive=lambda: None) -> None:
+    # Driving --------------------------------------------------------------------------------
+
+    def _spin_until(self, executor, done, deadline: float, what: str, alive) -> None:
         while not done():
             if time.monotonic() > deadline:
                 raise GraphEpisodeError(f'timed out waiting for {what}')
             alive()
             executor.spin_once(timeout_sec=0.05)
 
-    def _call(self, executor, client, deadline: float, alive):
+    def _reset(self, executor, node: str, deadline: float, alive):
+        client = self.reset_clients[node]
         self._spin_until(executor, client.service_is_ready, deadline, f'service {client.srv_name}', alive)
         future = client.call_async(Trigger.Request())
         self._spin_until(executor, future.done, deadline, f'a reply from {client.srv_name}', alive)
         return future.result()
 
-    def run(self, executor, timeout: float, alive=lambda: None) -> Recording:
-        """Drive one episode; `alive` raises if a node process has died."""
+    def _configure(self, executor, node: str, parameters: list[Parameter], deadline: float, alive) -> None:
+        client = self.parameter_clients[node]
+        self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of /{node}', alive)
+        future = client.set_parameters(parameters)
+        self._spin_until(executor, future.done, deadline, f'/{node} to take its parameters', alive)
+        refused = [f'{parameter.name}: {result.reason}'
+                   for parameter, result in zip(parameters, future.result().results) if not result.successful]
+        if refused:
+            raise GraphEpisodeError(f'/{node} refused parameters: {refused}')
+
+    def run_episode(self, executor, spec: EpisodeSpec, plan: EpisodePlan | None = None,
+                    bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
+                    alive=lambda: None) -> EpisodeResult:
+        """Configure, start, record and score one episode; `alive` raises if a node process has died."""
+        plan = plan if plan is not None else plan_episode(spec)
         deadline = time.monotonic() + timeout
-        plan = self.plan
-        reference = reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref, plan.a_ref, plan.nominal)
-        self.reference_publisher.publish(reference)
-        self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
-        reply = self._call(executor, self.controller_reset, deadline, alive)
-        while not reply.success:  # the latched reference is still on its way
-            executor.spin_once(timeout_sec=0.01)
-            reply = self._call(executor, self.controller_reset, deadline, alive)
-        reply = self._call(executor, self.plant_reset, deadline, alive)
-        if not reply.success:
-            raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
-        self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', alive)
-        if self.recording.error:
-            raise GraphEpisodeError(self.recording.error)
-        return self.recording
+        parameters = node_parameters(spec, plan, mode)
+        self._configure(executor, self.plant_node,
+                        _service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL), deadline,
+                        alive)
+        self._configure(executor, spec.controller,
+                        _service_parameters(parameters[spec.controller]['ros__parameters'],
+                                            CONTROLLER_OPTIONAL), deadline, alive)
+        self.period, self.bag = spec.period, bag
+        self.recording = Recording(plan.k_max)
+        try:
+            reference = reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref, plan.a_ref, plan.nominal)
+            self.reference_publisher.publish(reference)
+            self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
+            expected = {'ready': True, 'kp': list(spec.kp), 'kv': list(spec.kv), 'delay': spec.delay,
+                        'reference_samples': plan.k_max + 1, 'reference_final': plan.q_ref[-1].tolist()}
+            while True:  # until the controller holds this episode's reference and gains
+                state = json.loads(self._reset(executor, spec.controller, deadline, alive).message)
+                if all(state[key] == value for key, value in expected.items()):
+                    break
+                executor.spin_once(timeout_sec=0.01)
+            reply = self._reset(executor, self.plant_node, deadline, alive)
+            if not reply.success:
+                raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
+            self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', alive)
+            if self.recording.error:
+                raise GraphEpisodeError(self.recording.error)
+            return result_from_recording(spec, plan, self.recording)
+        finally:
+            self.recording, self.bag = None, None
 
 
 def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> EpisodeResult:
@@ -194,48 +257,87 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
     return result
 
 
-class NodeProcesses:
-    """The plant and controller as separate processes, stopped (SIGINT, then SIGKILL) on exit."""
-
-    def __init__(self, spec: EpisodeSpec, plan: EpisodePlan, folder: Path, mode: str) -> None:
-        parameters = folder / 'parameters.yaml'
-        parameters.write_text(yaml.safe_dump(node_parameters(spec, plan, mode)))
-        self.logs = {name: folder / f'{name}.log' for name in ('plant', spec.controller)}
-        commands = {
-            'plant': [sys.executable, '-m', 'ddarm_sim.node'],
-            spec.controller: [sys.executable, '-m', 'ddarm_control.node', spec.controller],
-        }
-        self.processes = {}
-        for name, command in commands.items():
-            with open(self.logs[name], 'w') as log:
-                self.processes[name] = subprocess.Popen(
-                    [*command, '--ros-args', '--params-file', str(parameters)],
-                    stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
-
-    def check_alive(self) -> None:
-        for name, process in self.processes.items():
-            if process.poll() is not None:
-                tail = self.logs[name].read_text()[-2000:]
-                raise GraphEpisodeError(f'the {name} node exited with code {process.returncode}:\n{tail}')
-
-    def stop(self) -> None:
-        for process in self.processes.values():
-            if process.poll() is None:
-                process.send_signal(subprocess.signal.SIGINT)
-        for process in self.processes.values():
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-
-
 def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
     """The configuration a bag carries, so that the bag alone says what was run."""
     return {'spec': spec.to_dict(), 'joints': load_arm(spec.urdf).joint_names, 'k_max': plan.k_max,
             'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
             'transport': transport, 'command': command,
             'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'))}
+
+
+class GraphSession:
+    """The plant and a controller as separate processes over DDS, with a driver in this process.
+
+    The node processes live as long as the session, so episodes cost no start-up; switching
+    controller stops the other law's process, because two laws would answer the same states.
+    """
+
+    def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
+        self._temporary = tempfile.TemporaryDirectory(prefix='ddarm-graph-') if folder is None else None
+        self.folder = Path(folder if folder is not None else self._temporary.name)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.timeout = timeout
+        self.processes: dict[str, subprocess.Popen] = {}
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.driver = GraphDriver(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.driver)
+        self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
+                                                   'command_timeout': COMMAND_TIMEOUT})
+
+    def _start(self, name: str, module: list[str], parameters: dict) -> None:
+        path = self.folder / f'{name}.parameters.yaml'
+        path.write_text(yaml.safe_dump({name: {'ros__parameters': parameters}}))
+        log = open(self.folder / f'{name}.log', 'w')
+        self.processes[name] = subprocess.Popen(
+            [sys.executable, '-m', *module, '--ros-args', '--params-file', str(path)],
+            stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
+        log.close()
+
+    def _use_controller(self, law: str, spec: EpisodeSpec) -> None:
+        for other in CONTROLLERS:
+            if other != law and other in self.processes:
+                self._stop(other)
+        if law not in self.processes:
+            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)})
+
+    def check_alive(self) -> None:
+        for name, process in self.processes.items():
+            if process.poll() is not None:
+                tail = (self.folder / f'{name}.log').read_text()[-2000:]
+                raise GraphEpisodeError(f'the {name} node exited with code {process.returncode}:\n{tail}')
+
+    def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
+            realtime: bool = False) -> EpisodeResult:
+        self._use_controller(spec.controller, spec)
+        return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
+                                       self.timeout, alive=self.check_alive)
+
+    def _stop(self, name: str) -> None:
+        process = self.processes.pop(name)
+        if process.poll() is None:
+            process.send_signal(subprocess.signal.SIGINT)
+            try:
+                process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+    def close(self) -> None:
+        for name in list(self.processes):
+            self._stop(name)
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        if self._temporary is not None:
+            self._temporary.cleanup()
+
+    def __enter__(self) -> GraphSession:
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.close()
 
 
 def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
@@ -250,25 +352,12 @@ def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float 
     transport = 'ros-realtime' if realtime else 'ros-lockstep'
     writer = None if bag is None else EpisodeBagWriter(bag, episode_record(spec, plan, transport, command),
                                                        storage)
-    context = rclpy.Context()
-    rclpy.init(context=context)
     complete = False
     try:
-        with tempfile.TemporaryDirectory(prefix='ddarm-episode-') as folder:
-            nodes = NodeProcesses(spec, plan, Path(folder), transport.removeprefix('ros-'))
-            driver = EpisodeDriver(spec, plan, bag=writer, context=context)
-            executor = SingleThreadedExecutor(context=context)
-            executor.add_node(driver)
-            try:
-                recording = driver.run(executor, timeout, alive=nodes.check_alive)
-            finally:
-                executor.shutdown()
-                driver.destroy_node()
-                nodes.stop()
-        result = result_from_recording(spec, plan, recording)
+        with GraphSession(timeout=timeout) as session:
+            result = session.run(spec, plan, writer, realtime)
         complete = True
     finally:
-        rclpy.try_shutdown(context=context)
         if writer is not None:
             writer.close(complete)
     return result

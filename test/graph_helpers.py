@@ -8,7 +8,7 @@ from rclpy.parameter import Parameter
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
 from ddarm_tuner.episodes import plan_episode
-from ddarm_tuner.ros_episode import EpisodeDriver, node_parameters, result_from_recording
+from ddarm_tuner.ros_episode import GraphDriver, node_parameters
 
 
 def overrides(values: dict) -> list:
@@ -26,14 +26,14 @@ class InProcessGraph:
         self.plant = PlantNode(context=context, parameter_overrides=overrides(plant_values))
         self.controller = ControllerNode(spec.controller, context=context,
                                          parameter_overrides=overrides(controller_values))
-        self.driver = EpisodeDriver(spec, self.plan, bag=bag, context=context)
+        self.driver = GraphDriver(context=context)
+        self.bag = bag
         self.executor = SingleThreadedExecutor(context=context)
         for node in (self.plant, self.controller, self.driver):
             self.executor.add_node(node)
 
     def run(self, timeout=60.0):
-        recording = self.driver.run(self.executor, timeout)
-        return result_from_recording(self.spec, self.plan, recording)
+        return self.driver.run_episode(self.executor, self.spec, self.plan, self.bag, timeout=timeout)
 
     def spin_until(self, condition, timeout=10.0):
         deadline = time.monotonic() + timeout

@@ -25,7 +25,7 @@ SPECS = {
 def record(context, spec, path, storage='mcap'):
     graph = InProcessGraph(context, spec)
     with EpisodeBagWriter(path, episode_record(spec, graph.plan, 'ros-lockstep', 'test'), storage) as bag:
-        graph.driver.bag = bag
+        graph.bag = bag
         try:
             result = graph.run()
             bag.close(complete=True)
