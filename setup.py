@@ -21,6 +21,7 @@ setup(
          [f'resource/{name}' for name in (PACKAGE, 'ddarm_sim', 'ddarm_control', 'ddarm_tuner')]),
         ('lib/ddarm_sim', ['scripts/plant']),
         ('lib/ddarm_control', ['scripts/pd_gravity', 'scripts/computed_torque']),
+        ('lib/ddarm_tuner', ['scripts/tuner']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/config', sorted(glob('config/*'))),
     ],

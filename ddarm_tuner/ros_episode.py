@@ -17,7 +17,7 @@ import numpy as np
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -180,7 +180,11 @@ class GraphDriver(Node):
     # Driving --------------------------------------------------------------------------------
 
     def _spin_until(self, executor, done, deadline: float, what: str, alive) -> None:
-        while not done():
+        while True:
+            if not self.context.ok():  # SIGINT/SIGTERM: rclpy's handler shut the context down
+                raise ExternalShutdownException(f'shut down while waiting for {what}')
+            if done():
+                return
             if time.monotonic() > deadline:
                 raise GraphEpisodeError(f'timed out waiting for {what}')
             alive()

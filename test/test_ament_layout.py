@@ -79,7 +79,7 @@ def test_the_package_and_its_config_are_installed_under_share(colcon_install):
     install, _ = colcon_install
     for name in ('ddarm', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner'):
         assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / name).is_file()
-    for name in ('ddarm.urdf', 'plant.yaml', 'pd_gravity.yaml', 'computed_torque.yaml'):
+    for name in ('ddarm.urdf', 'plant.yaml', 'pd_gravity.yaml', 'computed_torque.yaml', 'tuner.yaml'):
         assert (install / 'share' / 'ddarm' / 'config' / name).is_file()
 
 
@@ -96,3 +96,14 @@ def test_the_pip_install_starts_the_same_nodes(arguments, service):
         process.send_signal(signal.SIGINT)
         output, _ = process.communicate(timeout=20)
     assert process.returncode == 0, output
+
+
+def test_ros2_run_resolves_and_starts_the_tuner(colcon_install, tmp_path):
+    install, environment = colcon_install
+    path = resolve('ddarm_tuner', 'tuner', environment)
+    assert path == install / 'lib' / 'ddarm_tuner' / 'tuner' and os.access(path, os.X_OK)
+    # Started with config/tuner.yaml plus a mistyped parameter, it reads both and refuses by name.
+    done = subprocess.run([str(path), '--ros-args', '--params-file', str(ROOT / 'config' / 'tuner.yaml'),
+                           '-p', 'output_root:=' + str(tmp_path), '-p', 'tauz:=0.1'],
+                          env=environment, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "unknown parameters ['tauz']" in done.stdout + done.stderr

@@ -1,0 +1,76 @@
+"""A run on disk: runs/<name>/ holds its bags, a JSON summary of every episode, the tuned YAML and a log."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import yaml
+
+from ddarm_tuner.bags import BagError, checked_output_path, child_path
+
+DEFAULT_ROOT = Path('runs')
+
+
+def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenance: str) -> str:
+    """A parameter file that `ros2 run ddarm_control <controller> --ros-args --params-file` loads as it is."""
+    body = {controller: {'ros__parameters': {
+        'kp': [float(x) for x in kp], 'kv': [float(x) for x in kv], 'omega': 0.0,
+        'compute_delay_steps': int(delay), 'period': float(period)}}}
+    header = ''.join(f'# {line}\n' for line in provenance.splitlines())
+    return header + yaml.safe_dump(body, sort_keys=False)
+
+
+class RunFolder:
+    """runs/<name>/: created new (never reused), with bags/, summary.json and run.log.
+
+    The summary is rewritten after every episode, so a run stopped part way leaves a true
+    account of what finished.
+    """
+
+    def __init__(self, name: str, root: Path | str = DEFAULT_ROOT, command: str = '') -> None:
+        root = Path(root)
+        if root.is_symlink():
+            raise BagError(f'{root} is a symlink; refusing to write through it')
+        root.mkdir(parents=True, exist_ok=True)
+        self.path = child_path(root, name)
+        self.path.mkdir()
+        (self.path / 'bags').mkdir()
+        self.summary = {'name': name, 'command': command, 'started': time.strftime('%Y-%m-%dT%H:%M:%S%z'),
+                        'status': 'running', 'episodes': []}
+        self.log = logging.getLogger(f'ddarm.run.{name}')
+        self.log.setLevel(logging.INFO)
+        self._handler = logging.FileHandler(self.path / 'run.log')
+        self._handler.setFormatter(logging.Formatter('%(asctime)s %(levelname)s %(message)s'))
+        self.log.addHandler(self._handler)
+        self.log.info('run %s: %s', name, command)
+        self._write_summary()
+
+    def bag_path(self, episode_name: str) -> Path:
+        return child_path(self.path / 'bags', episode_name)
+
+    def add_episode(self, record: dict) -> None:
+        self.summary['episodes'].append(record)
+        self.log.info('episode %s: %s', record.get('name'), json.dumps(
+            {key: record.get(key) for key in ('I1', 'I2', 'I', 'diverged', 'bag')}))
+        self._write_summary()
+
+    def write_text(self, name: str, text: str) -> Path:
+        path = checked_output_path(self.path / name)
+        path.write_text(text)
+        self.log.info('wrote %s', path)
+        return path
+
+    def finish(self, status: str, **extra) -> None:
+        self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
+        self._write_summary()
+        self.log.info('run %s', status)
+        self.log.removeHandler(self._handler)
+        self._handler.close()
+
+    def _write_summary(self) -> None:
+        partial = self.path / 'summary.json.partial'
+        partial.write_text(json.dumps(self.summary, indent=2))
+        partial.replace(self.path / 'summary.json')  # atomic: a reader never sees half a summary

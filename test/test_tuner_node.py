@@ -1,0 +1,107 @@
+"""The tuner node over ROS: episodes driven on separate plant and controller processes, recorded as bags,
+scored from the bags; stopped by SIGTERM it leaves every finished bag readable (FAULTS.md 15-17)."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from ddarm_tuner.bags import BagError, read_episode_bag, score_bag
+from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, run_episode
+from ddarm_tuner.node import TunerNode
+from ddarm_tuner.runs import RunFolder
+
+GAINS = {'computed_torque': ([900.0] * 3, [60.0] * 3, 1),
+         'pd_gravity': ([28000.0, 27000.0, 3500.0], [1760.0, 1700.0, 220.0], 0)}
+
+
+def start_nodes(law, folder):
+    """The plant and one controller as processes, as `ros2 run` would start them."""
+    kp, kv, _ = GAINS[law]
+    plant = subprocess.Popen([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '-p', 'autostart:=false'],
+                             stdout=open(folder / 'plant.log', 'w'), stderr=subprocess.STDOUT)
+    controller = subprocess.Popen([sys.executable, '-m', 'ddarm_control.node', law, '--ros-args',
+                                   '-p', f'kp:={kp}', '-p', f'kv:={kv}'],
+                                  stdout=open(folder / 'controller.log', 'w'), stderr=subprocess.STDOUT)
+    return [plant, controller]
+
+
+def stop(processes):
+    for process in processes:
+        process.send_signal(signal.SIGINT)
+    for process in processes:
+        process.wait(timeout=20)
+
+
+@pytest.mark.parametrize('law', ['computed_torque', 'pd_gravity'])
+def test_tuner_episodes_scored_from_their_bags_equal_the_in_process_indices(ros_context, tmp_path, law):
+    kp, kv, delay = GAINS[law]
+    nodes = start_nodes(law, tmp_path)
+    tuner = TunerNode(context=ros_context, parameter_overrides=[
+        Parameter('controller', value=law), Parameter('kp', value=kp), Parameter('kv', value=kv),
+        Parameter('delay', value=delay), Parameter('taus', value=[0.0, 0.1]),
+        Parameter('torque_limits', value=['none', 'paper'])])
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(tuner)
+    run = RunFolder('sweep', tmp_path / 'runs', command='test')
+    try:
+        tuner.run_sweep(executor, run)
+        run.finish('complete')
+    finally:
+        executor.shutdown()
+        tuner.destroy_node()
+        stop(nodes)
+    summary = json.loads((tmp_path / 'runs' / 'sweep' / 'summary.json').read_text())
+    assert summary['status'] == 'complete' and len(summary['episodes']) == 4
+    for episode in summary['episodes']:
+        spec = EpisodeSpec(**episode['spec'])
+        expected = run_episode(spec).indices
+        scored = score_bag(episode['bag'])
+        for key in ('I1', 'I2', 'I'):
+            assert scored[key] == pytest.approx(expected[key], rel=1e-9)
+            assert episode[key] == scored[key]
+    assert {episode['spec']['torque_limit'] for episode in summary['episodes']} == {'none', 'paper'}
+
+
+def test_sigterm_stops_the_tuner_and_every_finished_bag_reads_back(tmp_path):
+    nodes = start_nodes('computed_torque', tmp_path)
+    taus = ','.join(f'{0.01 * i:.2f}' for i in range(11))
+    tuner = subprocess.Popen(
+        [sys.executable, '-m', 'ddarm_tuner.node', '--ros-args', '-p', 'kp:=[900.0,900.0,900.0]',
+         '-p', 'kv:=[60.0,60.0,60.0]', '-p', f'taus:=[{taus}]', '-p', "torque_limits:=['none','paper']",
+         '-p', f'output_root:={tmp_path / "runs"}', '-p', 'run_name:=stopped'],
+        stdout=open(tmp_path / 'tuner.log', 'w'), stderr=subprocess.STDOUT)
+    summary_path = tmp_path / 'runs' / 'stopped' / 'summary.json'
+    try:
+        deadline = time.monotonic() + 120
+        while not (summary_path.exists() and len(json.loads(summary_path.read_text())['episodes']) >= 2):
+            assert time.monotonic() < deadline and tuner.poll() is None, (tmp_path / 'tuner.log').read_text()
+            time.sleep(0.1)  # polling another process's files: there is no event to wait on
+        tuner.send_signal(signal.SIGTERM)
+        assert tuner.wait(timeout=60) == 0
+    finally:
+        stop(nodes)
+    summary = json.loads(summary_path.read_text())
+    assert summary['status'] == 'interrupted'
+    assert len(summary['episodes']) < 22, 'the tuner should not have finished before SIGTERM'
+    finished = {episode['bag'] for episode in summary['episodes']}
+    for bag in sorted((tmp_path / 'runs' / 'stopped' / 'bags').iterdir()):
+        if str(bag) in finished:
+            assert score_bag(bag)['I'] > 0
+            assert read_episode_bag(bag).status == 'complete'
+        else:  # the episode SIGTERM interrupted: closed, and marked so
+            with pytest.raises(BagError, match='marked incomplete'):
+                score_bag(bag)
+
+
+def test_tuner_parameter_typos_are_refused(ros_context):
+    with pytest.raises(EpisodeError, match="unknown parameters \\['tau'\\]"):
+        TunerNode(context=ros_context, parameter_overrides=[Parameter('tau', value=0.1)])
+    with pytest.raises(EpisodeError, match='gains_file'):
+        TunerNode(context=ros_context, parameter_overrides=[Parameter('gains_file', value='/nonexistent.yaml')])
