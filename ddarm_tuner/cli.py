@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -24,18 +25,19 @@ def _finite(text: str) -> float:
     return value
 
 
-def add_episode_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options that define an episode (MODEL.md's defaults)."""
+def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
+    """The options that define an episode (MODEL.md's defaults); `gains` adds --omega / --kp --kv."""
     parser.add_argument('--controller', choices=CONTROLLERS, required=True)
     parser.add_argument('--trajectory', type=int, choices=sorted(TRAJECTORY_ENDPOINTS), default=1)
     parser.add_argument('--duration', type=_finite, default=1.0, metavar='T', help='T in s (default 1)')
     parser.add_argument('--period', type=_finite, default=0.01, metavar='DT',
                         help='sampling period Δ in s (default 0.01)')
-    gains = parser.add_mutually_exclusive_group(required=True)
-    gains.add_argument('--omega', type=_finite, metavar='W',
-                       help='gains from the ω rule of section 2 (PD + gravity: m_ii at q_f)')
-    gains.add_argument('--kp', type=_finite, nargs='+', metavar='K', help='K_p diagonal, one per joint')
-    parser.add_argument('--kv', type=_finite, nargs='+', metavar='V', help='K_v diagonal, with --kp')
+    if gains:
+        choice = parser.add_mutually_exclusive_group(required=True)
+        choice.add_argument('--omega', type=_finite, metavar='W',
+                            help='gains from the ω rule of section 2 (PD + gravity: m_ii at q_f)')
+        choice.add_argument('--kp', type=_finite, nargs='+', metavar='K', help='K_p diagonal, one per joint')
+        parser.add_argument('--kv', type=_finite, nargs='+', metavar='V', help='K_v diagonal, with --kp')
     parser.add_argument('--delay', type=int, default=1, metavar='D',
                         help='compute delay in samples (default 1; the paper uses 0 for PD + gravity)')
     parser.add_argument('--tau', type=_finite, default=0.0,
@@ -56,7 +58,9 @@ def add_episode_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
-    if args.omega is not None:
+    if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
+        kp = kv = (1.0,) * len(paper_trajectory(args.trajectory, args.duration).q0)
+    elif args.omega is not None:
         final = paper_trajectory(args.trajectory, args.duration).qf
         kp, kv = gains_from_omega(args.controller, args.omega, final_position=final)
     else:
@@ -132,6 +136,72 @@ def command_score(args: argparse.Namespace) -> int:
     return 2 if failures else 0
 
 
+def _run_folder(args: argparse.Namespace, kind: str):
+    from ddarm_tuner.runs import RunFolder
+
+    name = args.run or time.strftime(f'{kind}-{args.controller}-%Y%m%d-%H%M%S')
+    return RunFolder(name, args.runs, command=shlex.join(['ddarm', *args.argv]))
+
+
+def _write_gains(run, args, kp, kv, spec: EpisodeSpec, provenance: str) -> list[str]:
+    """The controller YAML in the run folder, and at --out if given (never overwriting)."""
+    from ddarm_tuner.bags import checked_output_path
+    from ddarm_tuner.runs import controller_yaml
+
+    text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance)
+    written = [str(run.write_text(f'{spec.controller}.yaml', text))]
+    if args.out:
+        checked_output_path(args.out).write_text(text)
+        written.append(args.out)
+    return written
+
+
+def command_omega(args: argparse.Namespace) -> int:
+    from ddarm_tuner.procedures import omega_procedure
+
+    if args.mass_error is not None and args.mass_scale is not None:
+        raise EpisodeError('give --mass-error or --mass-scale, not both')
+    spec = episode_spec(args)
+    if args.mass_error is not None:
+        spec = dataclasses.replace(spec, mass_scale=tuple(1.0 + e for e in args.mass_error))
+    if args.disturbance is not None:
+        spec = dataclasses.replace(spec, external_torque=tuple(args.disturbance))
+    choice = omega_procedure(spec, np.radians(args.max_error), args.torque_factor, args.omega_step,
+                             args.omega_max)
+    run = _run_folder(args, 'omega')
+    steps = [dataclasses.asdict(step) for step in choice.steps]
+    report = {'omega_min': choice.omega_min,
+              'steady_state_error_at_omega_min_deg': np.degrees(choice.steady_state_error_at_min).tolist(),
+              'omega': choice.omega, 'kp': None if choice.kp is None else choice.kp.tolist(),
+              'kv': None if choice.kv is None else choice.kv.tolist(),
+              'indices': choice.steps[-2 if not choice.steps[-1].accepted else -1].indices
+              if choice.omega is not None else None,
+              'steps': steps, 'spec': spec.to_dict(), 'command': run.summary['command']}
+    if choice.omega is not None:
+        report['gains_files'] = _write_gains(run, args, choice.kp, choice.kv, spec,
+                                             f"ω = {choice.omega} from: {report['command']}")
+    run.summary['omega'] = report
+    run.finish('complete' if choice.omega is not None else 'no omega meets the torque conditions')
+    report['run'] = str(run.path)
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    print(f"{spec.controller}: ω_min = {choice.omega_min:.6g} (steady-state errors at ω_min, deg: "
+          f"{_format_vector(report['steady_state_error_at_omega_min_deg'])})")
+    for step in choice.steps:
+        print(f'  ω = {step.omega:8.4g}  max |P| / limit = {step.max_torque_ratio_to_limit:.3f}  '
+              f'max |P| / max |P_nom| = {step.max_torque_ratio_to_nominal:.3f}  '
+              f"{'diverged ' if step.diverged else ''}{'accepted' if step.accepted else 'rejected'}")
+    if choice.omega is None:
+        print('  no ω from ω_min up meets the torque conditions')
+    else:
+        indices = report['indices']
+        print(f"  chosen ω = {choice.omega:.6g}: kp = {_format_vector(choice.kp)}  kv = {_format_vector(choice.kv)}")
+        print(f"  I1 (2.5) = {indices['I1']:.6g}   I2 = {indices['I2']:.6g}   I (3.2) = {indices['I']:.6g}")
+        print(f"  gains written to {', '.join(report['gains_files'])}")
+    return 0
+
+
 def command_plant(args: argparse.Namespace) -> int:
     from ddarm_sim.node import main as plant_main
 
@@ -142,6 +212,13 @@ def command_controller(args: argparse.Namespace) -> int:
     from ddarm_control.node import main as controller_main
 
     return controller_main(['ddarm-controller', *args.ros_arguments], args.law)
+
+
+def add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--runs', default='runs', help='folder of run folders (runs)')
+    parser.add_argument('--run', metavar='NAME', help='run folder name (default: <command>-<law>-<time>)')
+    parser.add_argument('--out', metavar='FILE.yaml', help='also write the controller YAML here (new file)')
+    parser.add_argument('--json', action='store_true', help='print one JSON object')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -158,6 +235,21 @@ def build_parser() -> argparse.ArgumentParser:
     episode.add_argument('--bag', metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
     episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     episode.set_defaults(handler=command_episode)
+    omega = commands.add_parser('omega', help="section 2's procedure: the ω rule's ω from permitted errors "
+                                             'and torques')
+    add_episode_arguments(omega, gains=False)
+    omega.add_argument('--max-error', type=_finite, nargs='+', required=True, metavar='DEG',
+                       help='permitted steady-state error in degrees (one, or one per joint)')
+    omega.add_argument('--disturbance', type=_finite, nargs='+', metavar='PZ',
+                       help='constant external joint torques P^z in N m (same as --external-torque)')
+    omega.add_argument('--mass-error', type=_finite, nargs='+', metavar='E',
+                       help='relative link mass error of the plant: plant mass = model mass x (1 + E)')
+    omega.add_argument('--torque-factor', type=_finite, default=1.5, metavar='F',
+                       help='largest torque allowed, as a multiple of the largest nominal torque (1.5)')
+    omega.add_argument('--omega-step', type=_finite, default=0.5, help='ω increment when raising (0.5)')
+    omega.add_argument('--omega-max', type=_finite, default=100.0, help='largest ω tried (100)')
+    add_output_arguments(omega)
+    omega.set_defaults(handler=command_omega)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')
     score.add_argument('--json', action='store_true', help='one JSON object per bag, one per line')
@@ -179,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     args.ros_arguments, args.argv = ros_arguments, argv
     try:
         return args.handler(args)
-    except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError) as error:
+    except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError, OSError) as error:
         print(f'ddarm {args.command}: {error}', file=sys.stderr)
         return 2
 

@@ -24,7 +24,7 @@ def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenan
 
 
 class RunFolder:
-    """runs/<name>/: created new (never reused), with bags/, summary.json and run.log.
+    """runs/<name>/: created new (never reused), with summary.json, run.log and bags/ when episodes are recorded.
 
     The summary is rewritten after every episode, so a run stopped part way leaves a true
     account of what finished.
@@ -37,7 +37,6 @@ class RunFolder:
         root.mkdir(parents=True, exist_ok=True)
         self.path = child_path(root, name)
         self.path.mkdir()
-        (self.path / 'bags').mkdir()
         self.summary = {'name': name, 'command': command, 'started': time.strftime('%Y-%m-%dT%H:%M:%S%z'),
                         'status': 'running', 'episodes': []}
         self.log = logging.getLogger(f'ddarm.run.{name}')
@@ -49,6 +48,7 @@ class RunFolder:
         self._write_summary()
 
     def bag_path(self, episode_name: str) -> Path:
+        (self.path / 'bags').mkdir(exist_ok=True)
         return child_path(self.path / 'bags', episode_name)
 
     def add_episode(self, record: dict) -> None:
