@@ -227,7 +227,6 @@ class PlantNode(Node):
         self.deadline = time.monotonic() + self.settings.command_timeout
         self._report(DiagnosticStatus.OK, 'started', 'episode started')
         if self.settings.mode == 'realtime':
-            self.next_tick = time.monotonic() + self.settings.period
             self.realtime_timer = self.create_timer(self.settings.period, self._tick,
                                                     clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -303,14 +302,13 @@ class PlantNode(Node):
     def _tick(self) -> None:
         """Real time: hold the latest command (zero until the first) and count what came late.
 
-        A deadline miss is a tick more than half a period behind its slot; a stale command is a
-        tick whose latest command is not for the current sample (it is held all the same).
+        A deadline miss is a tick that starts more than 1.5 periods after the one before; a stale
+        command is a tick whose latest command is not for the current sample (held all the same).
         """
         now = time.monotonic()
-        self.tick_times.append(now)
-        if now - self.next_tick > 0.5 * self.settings.period:
+        if self.tick_times and now - self.tick_times[-1] > 1.5 * self.settings.period:
             self.counters['deadline_misses'] += 1
-        self.next_tick += self.settings.period
+        self.tick_times.append(now)
         if self.latest_command_sample != self.plant.sample:
             self.counters['stale_commands'] += 1
         held = self.latest_command if self.latest_command is not None else np.zeros(self.arm.dof)
