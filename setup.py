@@ -35,6 +35,7 @@ setup(
         'scipy==1.17.1',
         'matplotlib==3.11.2',
         'cma==4.5.0',
+        'numba==0.68.1',
         'tqdm==4.70.1',
         'PyYAML==6.0.3',
     ],

@@ -1,0 +1,223 @@
+"""The batch engine against the scalar runner, episode by episode (MODEL.md 5-8)."""
+
+import dataclasses
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from ddarm_sim.model import ModelError
+from ddarm_sim.trajectory import ProgrammedMotion
+from ddarm_tuner.batch import MAX_BATCH, BatchError, chain_from_model, simulate_batch
+from ddarm_tuner.episodes import EpisodeSpec, plan_motion, run_episode
+
+CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
+PD_10 = dict(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))
+# Per controller: the ω-rule gains, a perturbation of them, and gains that diverge.
+GAINS = {
+    'computed_torque': ([[225.0] * 3, [150.0, 400.0, 90.0], [1e6] * 3], [[30.0] * 3, [20.0, 45.0, 25.0], [3e3] * 3]),
+    'pd_gravity': ([[2800.0, 2700.0, 350.0], [5000.0, 2000.0, 500.0], [1e7] * 3],
+                   [[560.0, 540.0, 70.0], [700.0, 400.0, 90.0], [10.0] * 3]),
+}
+TOLERANCE = 1e-9
+
+
+def assert_member_matches(batch, member, scalar):
+    """Member `member` of a batch is the scalar episode: indices to 1e-9 relative, same divergence."""
+    for key, value in scalar.indices.items():
+        assert batch.indices(member)[key] == pytest.approx(value, rel=TOLERANCE, abs=1e-300), key
+    assert bool(batch.diverged[member]) == scalar.diverged
+    assert batch.diverged_at[member] == (scalar.diverged_at if scalar.diverged else -1)
+    assert batch.samples_scored[member] == len(scalar.torque)
+
+
+@pytest.mark.parametrize('controller', sorted(GAINS))
+@pytest.mark.parametrize('delay', [0, 1, 2])
+@pytest.mark.parametrize('torque_limit', ['none', 'paper'])
+@pytest.mark.parametrize('tau', [0.0, 0.1])
+def test_every_member_is_the_scalar_episode(controller, delay, torque_limit, tau):
+    kp, kv = GAINS[controller]
+    template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], delay=delay, torque_limit=torque_limit,
+                           tau=tau)
+    batch = simulate_batch(template, kp, kv)
+    for member in range(len(kp)):
+        scalar = run_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]))
+        assert_member_matches(batch, member, scalar)
+
+
+@pytest.mark.parametrize('controller, delay', [('computed_torque', 1), ('computed_torque', 2), ('pd_gravity', 0)])
+def test_a_diverging_member_stops_where_run_episode_does_and_the_others_go_on(controller, delay):
+    kp, kv = GAINS[controller]
+    template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], delay=delay, tau=0.1)
+    batch = simulate_batch(template, kp, kv)
+    assert batch.diverged.tolist() == [False, False, True]
+    assert 0 < batch.diverged_at[2] < batch.plan.k_max
+    for member in range(3):
+        assert_member_matches(batch, member, run_episode(dataclasses.replace(template, kp=kp[member],
+                                                                             kv=kv[member])))
+
+
+def test_plant_options_and_mass_mismatch_match_the_scalar_episode():
+    template = EpisodeSpec(**CT_15, delay=1, tau=0.1, torque_limit='paper', external_torque=(5.0, 5.0, 1.0),
+                           viscous_friction=(1.0, 1.0, 0.5), coulomb_friction=(0.5, 0.5, 0.2),
+                           mass_scale=(1.0, 1.1, 0.9))
+    kp, kv = GAINS['computed_torque']
+    batch = simulate_batch(template, kp, kv)
+    for member in range(3):
+        assert_member_matches(batch, member, run_episode(dataclasses.replace(template, kp=kp[member],
+                                                                             kv=kv[member])))
+
+
+def test_a_batch_of_one_is_the_scalar_episode_with_its_series():
+    template = EpisodeSpec(**PD_10, delay=0, tau=0.1, torque_limit='paper')
+    batch = simulate_batch(template, [template.kp], [template.kv], series=True)
+    scalar = run_episode(template)
+    assert batch.size == 1
+    assert_member_matches(batch, 0, scalar)
+    for name in ('q', 'v', 'command', 'torque'):
+        np.testing.assert_allclose(getattr(batch, name)[0], getattr(scalar, name), rtol=1e-9, atol=1e-9)
+
+
+def test_the_series_of_a_diverged_member_end_where_it_was_scored():
+    kp, kv = GAINS['computed_torque']
+    batch = simulate_batch(EpisodeSpec(**CT_15), kp, kv, series=True)
+    stop = batch.samples_scored[2]
+    assert stop < batch.plan.k_max + 1
+    assert np.all(np.isfinite(batch.torque[2, :stop])) and np.all(np.isnan(batch.torque[2, stop:]))
+    assert np.all(np.isfinite(batch.q[:2]))
+
+
+def test_per_episode_tau_limits_and_mass_scale_are_each_members_own_episode():
+    template = EpisodeSpec(**CT_15, delay=1)
+    kp = np.array([[225.0] * 3, [150.0, 400.0, 90.0], [300.0, 200.0, 250.0]])
+    kv = np.array([[30.0] * 3, [20.0, 45.0, 25.0], [35.0, 25.0, 30.0]])
+    tau = np.array([0.0, 0.05, 0.1])
+    limits = np.array([[400.0, 600.0, 200.0], [300.0, 500.0, 150.0], [1e4, 1e4, 1e4]])
+    scales = np.array([[1.0, 1.0, 1.0], [1.0, 1.2, 0.8], [0.9, 1.1, 1.3]])
+    batch = simulate_batch(template, kp, kv, tau=tau, torque_limit=limits, mass_scale=scales)
+    for member in range(3):
+        spec = dataclasses.replace(template, kp=kp[member], kv=kv[member], tau=tau[member],
+                                   torque_limit=tuple(limits[member]), mass_scale=tuple(scales[member]))
+        assert_member_matches(batch, member, run_episode(spec))
+
+
+def test_the_result_does_not_depend_on_the_number_of_threads():
+    rng = np.random.default_rng(5)
+    kp = 225.0 * np.exp(0.3 * rng.normal(size=(37, 3)))
+    kv = 30.0 * np.exp(0.3 * rng.normal(size=(37, 3)))
+    template = EpisodeSpec(**CT_15, tau=0.1)
+    one, two = simulate_batch(template, kp, kv, threads=1), simulate_batch(template, kp, kv, threads=2)
+    np.testing.assert_array_equal(one.index_3_2, two.index_3_2)
+    np.testing.assert_array_equal(one.diverged_at, two.diverged_at)
+
+
+@pytest.mark.parametrize('case, delay', [(CT_15, 1), (PD_10, 0)])
+def test_the_default_substeps_keep_the_indices_within_1e_6_of_40_substeps(case, delay):
+    # The ω-rule gains in the paper's settings: the reference case, with and without its
+    # disturbance and limits. (Gains that swing the arm at 100+ rad/s need more substeps.)
+    kp, kv = [case['kp']], [case['kv']]
+    for spec in (EpisodeSpec(**case, delay=delay), EpisodeSpec(**case, delay=delay, tau=0.1, torque_limit='paper')):
+        default = simulate_batch(spec, kp, kv)
+        reference = simulate_batch(dataclasses.replace(spec, substeps=40), kp, kv)
+        for got, want in ((default.index_2_5, reference.index_2_5), (default.torque_index, reference.torque_index),
+                          (default.index_3_2, reference.index_3_2)):
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
+
+
+# A serial arm unlike the paper's: prismatic and revolute joints, aligned and unaligned axes,
+# turned placements and inertial frames (nothing here is specific to the paper's arm).
+GENERIC_URDF = """<?xml version="1.0"?>
+<robot name="generic5">
+  <link name="base"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
+    <origin xyz="0.1 0.0 0.3" rpy="0.2 0.0 0.4"/><axis xyz="1 0 0"/>
+    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
+  <link name="l1"><inertial><origin xyz="0.05 0.1 -0.02" rpy="0.1 0.2 0.3"/><mass value="2.0"/>
+    <inertia ixx="0.3" ixy="0.01" ixz="0.02" iyy="0.2" iyz="0.03" izz="0.25"/></inertial></link>
+  <joint name="j2" type="prismatic"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0.0 0.2 0.1" rpy="0.0 0.3 0.0"/><axis xyz="0.6 0.0 0.8"/>
+    <limit lower="-1" upper="1" effort="100" velocity="10"/></joint>
+  <link name="l2"><inertial><origin xyz="0.0 0.0 0.2" rpy="0 0 0"/><mass value="1.5"/>
+    <inertia ixx="0.1" ixy="0" ixz="0" iyy="0.12" iyz="0" izz="0.05"/></inertial></link>
+  <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/>
+    <origin xyz="0.3 0.0 0.0" rpy="-0.5 0.1 0.2"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
+  <link name="l3"><inertial><origin xyz="0.25 0.0 0.0" rpy="0 0 0"/><mass value="1.0"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.08" iyz="0" izz="0.08"/></inertial></link>
+  <joint name="j4" type="prismatic"><parent link="l3"/><child link="l4"/>
+    <origin xyz="0.5 0.0 0.0" rpy="0 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="100" velocity="10"/></joint>
+  <link name="l4"><inertial><origin xyz="0.0 0.05 0.1" rpy="0 0 0"/><mass value="0.5"/>
+    <inertia ixx="0.02" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.01"/></inertial></link>
+  <joint name="j5" type="revolute"><parent link="l4"/><child link="l5"/>
+    <origin xyz="0.0 0.0 0.2" rpy="0.3 -0.2 0.1"/><axis xyz="0.0 -0.6 0.8"/>
+    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
+  <link name="l5"><inertial><origin xyz="0.1 0.02 0.0" rpy="0 0.4 0"/><mass value="0.4"/>
+    <inertia ixx="0.01" ixy="0.001" ixz="0" iyy="0.015" iyz="0" izz="0.012"/></inertial></link>
+</robot>
+"""
+
+
+@pytest.mark.parametrize('controller', ['computed_torque', 'pd_gravity'])
+def test_any_serial_urdf_arm_runs_as_in_the_scalar_runner(tmp_path, controller):
+    urdf = tmp_path / 'generic5.urdf'
+    urdf.write_text(GENERIC_URDF)
+    motion = ProgrammedMotion(np.array([0.1, 0.0, -0.3, 0.1, 0.5]), np.array([0.8, 0.2, 0.4, -0.1, -0.5]), 1.0)
+    kp = np.array([[100.0] * 5, [150.0, 200.0, 80.0, 300.0, 60.0]])
+    kv = np.array([[20.0] * 5, [25.0, 30.0, 15.0, 35.0, 12.0]])
+    template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], urdf=str(urdf), delay=1,
+                           torque_limit='paper', mass_scale=(1.1, 0.9, 1.0, 1.2, 0.8))
+    plan = plan_motion(template, motion, np.arange(101) * 0.01)
+    batch = simulate_batch(template, kp, kv, plan=plan)
+    for member in range(2):
+        scalar = run_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]), plan)
+        assert_member_matches(batch, member, scalar)
+
+
+def test_the_chain_refuses_joints_other_than_revolute_and_prismatic():
+    model = pin.Model()
+    model.addJoint(0, pin.JointModelTranslation(), pin.SE3.Identity(), 'slider')
+    with pytest.raises(ModelError, match='slider'):
+        chain_from_model(model)
+
+
+@pytest.mark.parametrize('kp, kv, problem', [
+    ([225.0] * 3, [30.0] * 3, r'kp must have shape \(B, 3\)'),
+    ([[225.0] * 2], [[30.0] * 2], r'kp must have shape \(B, 3\)'),
+    ([[225.0] * 3] * 2, [[30.0] * 3], 'same shape'),
+    ([[225.0] * 3, [225.0, np.nan, 225.0]], [[30.0] * 3] * 2, 'kp must be finite and positive: episode 1'),
+    ([[225.0] * 3], [[30.0, 0.0, 30.0]], 'kv must be finite and positive: episode 0'),
+    ([[225.0] * 3], [[30.0, -1.0, np.inf]], 'kv must be finite and positive'),
+    (np.zeros((0, 3)), np.zeros((0, 3)), 'B = 0'),
+    (np.ones((MAX_BATCH + 1, 3)), np.ones((MAX_BATCH + 1, 3)), f'B = {MAX_BATCH + 1}'),
+    ([['a', 'b', 'c']], [[30.0] * 3], 'kp must be numbers'),
+])
+def test_bad_gains_are_refused_with_the_problem_named(kp, kv, problem):
+    with pytest.raises(BatchError, match=problem):
+        simulate_batch(EpisodeSpec(**CT_15), kp, kv)
+
+
+@pytest.mark.parametrize('options, problem', [
+    (dict(tau=[0.1]), r'tau must have shape \(2,\)'),
+    (dict(tau=[0.1, 2.0]), 'episode 1'),
+    (dict(torque_limit=[[1.0, 2.0, 3.0]]), r'torque_limit must have shape \(2, 3\)'),
+    (dict(torque_limit=[[1.0, 2.0, 3.0], [1.0, 0.0, 3.0]]), 'torque_limit must be finite and positive'),
+    (dict(mass_scale=[[1.0, 1.0, 1.0], [1.0, 1.0, np.nan]]), 'mass_scale must be finite and positive: episode 1'),
+    (dict(threads=0), 'threads'),
+    (dict(series=True, plan=None, tau=None, threads=1.5), 'threads'),
+])
+def test_bad_per_episode_options_are_refused_with_the_problem_named(options, problem):
+    with pytest.raises(BatchError, match=problem):
+        simulate_batch(EpisodeSpec(**CT_15), [[225.0] * 3] * 2, [[30.0] * 3] * 2, **options)
+
+
+def test_per_episode_tau_with_a_given_plan_is_refused():
+    spec = EpisodeSpec(**CT_15)
+    plan = plan_motion(spec, ProgrammedMotion(np.zeros(3), np.ones(3), 1.0), np.arange(101) * 0.01)
+    with pytest.raises(BatchError, match='tau'):
+        simulate_batch(spec, [[225.0] * 3], [[30.0] * 3], tau=[0.1], plan=plan)
+
+
+def test_bad_template_plant_options_are_refused_as_run_episode_refuses_them():
+    with pytest.raises(BatchError, match='external_torque'):
+        simulate_batch(EpisodeSpec(**CT_15, external_torque=(1.0, np.nan, 0.0)), [[225.0] * 3], [[30.0] * 3])
