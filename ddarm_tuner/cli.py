@@ -15,6 +15,7 @@ from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.model import ModelError
 from ddarm_sim.plant import DEFAULT_SUBSTEPS, PlantError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
+from ddarm_tuner.bench import add_bench_parser
 from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
 
 
@@ -259,6 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
     controller.add_argument('law', choices=CONTROLLERS)
     controller.set_defaults(handler=command_controller, takes_ros_arguments=True)
+    add_bench_parser(commands)
     return parser
 
 

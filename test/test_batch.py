@@ -1,6 +1,7 @@
 """The batch engine against the scalar runner, episode by episode (MODEL.md 5-8)."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pinocchio as pin
@@ -9,6 +10,7 @@ import pytest
 from ddarm_sim.model import ModelError
 from ddarm_sim.trajectory import ProgrammedMotion
 from ddarm_tuner.batch import MAX_BATCH, BatchError, chain_from_model, simulate_batch
+from ddarm_tuner.cli import main
 from ddarm_tuner.episodes import EpisodeSpec, plan_motion, run_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
@@ -221,3 +223,12 @@ def test_per_episode_tau_with_a_given_plan_is_refused():
 def test_bad_template_plant_options_are_refused_as_run_episode_refuses_them():
     with pytest.raises(BatchError, match='external_torque'):
         simulate_batch(EpisodeSpec(**CT_15, external_torque=(1.0, np.nan, 0.0)), [[225.0] * 3], [[30.0] * 3])
+
+
+def test_ddarm_bench_compares_the_two_paths_on_the_episodes_both_ran(capsys):
+    assert main(['bench', '--episodes', '4', '--scalar-episodes', '2', '--json']) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures['B'] == 4 and figures['scalar_episodes'] == 2 and figures['substeps'] == 8
+    assert figures['max_rel_index_diff'] < 1e-9 and figures['divergence_disagreements'] == 0
+    assert figures['batch_episodes_per_s'] > 0 and figures['scalar_episodes_per_s'] > 0
+    assert figures['peak_rss_mib'] > 0
