@@ -203,6 +203,60 @@ def command_omega(args: argparse.Namespace) -> int:
     return 0
 
 
+def command_tune(args: argparse.Namespace) -> int:
+    from ddarm_tuner.ros_episode import GraphSession, record_and_score
+    from ddarm_tuner.tune import INDEX_KEYS, tune, with_gains
+
+    template = episode_spec(args)
+    key = INDEX_KEYS[args.index]
+    progress = None if args.json else sys.stderr
+    if progress:
+        print(f'searching ({args.method}, budget {args.budget} episodes, starts ω = {args.omegas}) …',
+              file=progress, flush=True)
+    tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed)
+    run = _run_folder(args, 'tune')  # only now: a refused search leaves nothing behind
+    best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
+    if progress:
+        print(f'best {key} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
+              f'checking it through the ROS graph …', file=progress, flush=True)
+    with GraphSession(run.path / 'nodes') as session:
+        graph, scored = record_and_score(session, best_spec, run.bag_path('best'), args.storage,
+                                         run.summary['command'])
+    in_process = tuning.best
+    difference = max(abs(scored[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in ('I1', 'I2', 'I'))
+    report = {
+        'controller': template.controller, 'index': args.index, 'method': args.method, 'seed': args.seed,
+        'kp': tuning.search.kp.tolist(), 'kv': tuning.search.kv.tolist(),
+        'search_index': tuning.search.index, 'in_process': in_process,
+        'from_bag': {k: scored[k] for k in ('I1', 'I2', 'I')}, 'max_rel_difference': difference,
+        'agree': difference <= 1e-9, 'bag': scored['bag'],
+        'start_omegas': list(tuning.start_omegas), 'start_indices': tuning.start_indices,
+        'episodes': tuning.search.episodes, 'batches': tuning.search.batches,
+        'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
+        'spec': best_spec.to_dict(), 'command': run.summary['command'],
+    }
+    report['gains_files'] = _write_gains(
+        run, args, tuning.search.kp, tuning.search.kv, best_spec,
+        f"{key} = {scored[key]!r} (scored from {scored['bag']})\nfrom: {report['command']}")
+    run.summary['tune'] = report
+    run.finish('complete' if report['agree'] else 'in-process and bag indices disagree')
+    report['run'] = str(run.path)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"{template.controller}, index ({args.index}), {args.method}: {tuning.search.episodes} episodes in "
+              f"{tuning.wall_time_s:.2f} s ({tuning.episodes_per_s:.0f} episodes/s)")
+        print(f"  starts (ω rules {_format_vector(tuning.start_omegas)}): {key} = "
+              f"{_format_vector(tuning.start_indices)}")
+        print(f"  kp = {_format_vector(tuning.search.kp)}  kv = {_format_vector(tuning.search.kv)}")
+        for label, values in (('in-process', in_process), ('from bag  ', report['from_bag'])):
+            print(f"  {label}: I1 = {values['I1']:.9g}  I2 = {values['I2']:.9g}  I = {values['I']:.9g}")
+        print(f"  largest relative difference {difference:.2e} ({'agree' if report['agree'] else 'DISAGREE'}); "
+              f"bag {scored['bag']}")
+        print(f"  gains written to {', '.join(report['gains_files'])}")
+    return 0 if report['agree'] else 2
+
+
 def command_plant(args: argparse.Namespace) -> int:
     from ddarm_sim.node import main as plant_main
 
@@ -251,6 +305,19 @@ def build_parser() -> argparse.ArgumentParser:
     omega.add_argument('--omega-max', type=_finite, default=100.0, help='largest ω tried (100)')
     add_output_arguments(omega)
     omega.set_defaults(handler=command_omega)
+    tune = commands.add_parser('tune', help='optimise the gains for index (2.5) or (3.2), then check them '
+                                           'through the ROS graph')
+    add_episode_arguments(tune, gains=False)
+    tune.add_argument('--index', choices=('2.5', '3.2'), required=True)
+    tune.add_argument('--method', choices=('nelder-mead', 'cma'), default='nelder-mead',
+                      help='multi-start Nelder-Mead (the paper-style default) or CMA-ES')
+    tune.add_argument('--budget', type=int, default=3000, help='most episodes evaluated (3000)')
+    tune.add_argument('--omegas', type=_finite, nargs='+', default=[8.0, 12.0, 15.0, 20.0, 30.0],
+                      metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
+    tune.add_argument('--seed', type=int, default=0, help="CMA-ES's random seed (0)")
+    tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    add_output_arguments(tune)
+    tune.set_defaults(handler=command_tune)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')
     score.add_argument('--json', action='store_true', help='one JSON object per bag, one per line')

@@ -344,6 +344,23 @@ class GraphSession:
         self.close()
 
 
+def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storage: str = 'mcap',
+                     command: str | None = None) -> tuple[EpisodeResult, dict]:
+    """Run `spec` through the graph in lockstep, record it at `bag`, and score it from the bag alone.
+
+    Returns what the driver heard and the bag's score (the JSON of `ddarm score`); the bag is
+    closed and marked complete or incomplete whatever happens.
+    """
+    from ddarm_tuner.bags import score_bag
+
+    plan = plan_episode(spec)
+    writer = EpisodeBagWriter(bag, episode_record(spec, plan, 'ros-lockstep', command), storage)
+    with writer:
+        result = session.run(spec, plan, writer)
+        writer.close(complete=True)
+    return result, score_bag(bag)
+
+
 def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
                       bag: Path | str | None = None, storage: str = 'mcap', command: str | None = None,
                       ) -> EpisodeResult:

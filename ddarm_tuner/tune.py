@@ -1,0 +1,49 @@
+"""`ddarm tune`: gains optimised in-process through the batch engine, then checked once through the ROS graph."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ddarm_tuner.episodes import EpisodeSpec, run_episode
+from ddarm_tuner.search import SearchResult, omega_starts, search_gains
+
+# Start pulsatances for the ω rules (section 2): around the paper's ω = 15, on both sides.
+DEFAULT_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
+INDEX_KEYS = {'2.5': 'I1', '3.2': 'I'}
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """A finished search: its result, where it started, how long it took, and the best gains re-run alone."""
+
+    search: SearchResult
+    start_omegas: tuple
+    start_indices: list  # the index of each ω-rule start
+    wall_time_s: float
+    best: dict  # run_episode's indices at the best gains (the scalar path)
+
+    @property
+    def episodes_per_s(self) -> float:
+        return self.search.episodes / self.wall_time_s
+
+
+def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=DEFAULT_OMEGAS,
+         seed: int = 0) -> Tuning:
+    """Minimise `index` from the ω-rule gains at each ω of `omegas`; the best gains are re-run by the scalar path."""
+    start_kp, start_kv = omega_starts(template, omegas)
+    start_indices = [run_episode(with_gains(template, kp, kv)).indices[INDEX_KEYS[index]]
+                     for kp, kv in zip(start_kp, start_kv)]
+    started = time.perf_counter()
+    result = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget,
+                          method=method, seed=seed)
+    wall = time.perf_counter() - started
+    best = run_episode(with_gains(template, result.kp, result.kv)).indices
+    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, best)
+
+
+def with_gains(template: EpisodeSpec, kp, kv) -> EpisodeSpec:
+    """The template with these gains."""
+    return replace(template, kp=tuple(np.asarray(kp, dtype=float)), kv=tuple(np.asarray(kv, dtype=float)))

@@ -1,0 +1,46 @@
+"""`ddarm tune`: a small search improves on its ω-rule starts, the ROS check agrees with it to 1e-9, and the
+written YAML loads into the controller node."""
+
+import json
+
+import numpy as np
+import pytest
+import rclpy
+
+from ddarm_control.node import ControllerNode
+from ddarm_tuner.bags import score_bag
+from ddarm_tuner.cli import main
+
+
+@pytest.mark.parametrize('controller, index, method, delay', [
+    ('computed_torque', '2.5', 'nelder-mead', '1'),
+    ('pd_gravity', '3.2', 'cma', '0'),
+])
+def test_tune_improves_on_its_start_and_the_bag_agrees(capsys, tmp_path, controller, index, method, delay):
+    assert main(['tune', '--controller', controller, '--index', index, '--method', method, '--delay', delay,
+                 '--budget', '150', '--omegas', '10', '15', '--runs', str(tmp_path), '--run', 'small',
+                 '--out', str(tmp_path / 'gains.yaml'), '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    key = 'I1' if index == '2.5' else 'I'
+    assert report['in_process'][key] < min(report['start_indices'])
+    assert report['agree'] and report['max_rel_difference'] <= 1e-9
+    assert score_bag(report['bag'])[key] == report['from_bag'][key]
+    assert report['episodes'] <= 150
+    summary = json.loads((tmp_path / 'small' / 'summary.json').read_text())
+    assert summary['status'] == 'complete' and summary['tune']['kp'] == report['kp']
+    context = rclpy.Context()
+    rclpy.init(context=context, args=['--ros-args', '--params-file', str(tmp_path / 'gains.yaml')])
+    try:
+        node = ControllerNode(controller, context=context)
+        np.testing.assert_allclose(node.controller.law.kp, report['kp'], rtol=1e-15)
+        assert node.controller.delay == int(delay)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_budget_too_small_for_the_starts_is_refused(capsys, tmp_path):
+    assert main(['tune', '--controller', 'computed_torque', '--index', '2.5', '--budget', '3',
+                 '--runs', str(tmp_path)]) == 2
+    assert 'budget' in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
