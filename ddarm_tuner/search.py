@@ -126,6 +126,8 @@ def _start_points(start_kp, start_kv) -> np.ndarray:
                           f'got {kp.shape} and {kv.shape}')
     if not (np.all(np.isfinite(kp)) and np.all(np.isfinite(kv)) and np.all(kp > 0) and np.all(kv > 0)):
         raise SearchError('start gains must be finite and positive')
+    if np.any(np.minimum(kp, kv) < GAIN_RANGE[0]) or np.any(np.maximum(kp, kv) > GAIN_RANGE[1]):
+        raise SearchError(f'start gains must lie within GAIN_RANGE {GAIN_RANGE}')
     return np.log(np.concatenate([kp, kv], axis=1))
 
 

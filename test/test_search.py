@@ -67,6 +67,7 @@ def test_a_diverged_episode_never_looks_good(method):
     (dict(budget=100.0), 'budget'),
     (dict(start_kp=[[225.0] * 3], start_kv=[[30.0] * 2]), 'shape'),
     (dict(start_kp=[[225.0, -1.0, 225.0]], start_kv=[[30.0] * 3]), 'positive'),
+    (dict(start_kp=[[225.0, 1e12, 225.0]], start_kv=[[30.0] * 3]), 'GAIN_RANGE'),
     (dict(step=0.0), 'step'),
     (dict(method='cma', popsize=1), 'popsize'),
 ])
