@@ -93,7 +93,15 @@ class Recording:
 
     @property
     def ended(self) -> bool:
-        return self.error is not None or (self.last_state_heard and self.plant_report is not None)
+        """An error, or the last state, the plant's report and every scored command all heard.
+
+        Topics are not ordered among themselves: the plant's last state can arrive before the
+        command it applied.
+        """
+        if self.error is not None:
+            return True
+        last = self.k_max if self.diverged_at is None else self.diverged_at - 1
+        return self.last_state_heard and self.plant_report is not None and len(self.commands) >= last + 1
 
 
 def _stamp_ns(stamp) -> int:
