@@ -163,10 +163,15 @@ def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpis
         raise BagError(f'{path}: unreadable bag ({type(error).__name__}: {error})') from error
 
 
-def _read(path: Path, require_complete: bool) -> BagEpisode:
+def bag_status(path: Path | str) -> str:
+    """'complete', 'incomplete', or 'unknown' (not written by ddarm), from the bag's metadata."""
     # rosbags' Reader does not expose custom_data: read it from rosbag2's own metadata file.
-    metadata = yaml.safe_load((path / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    status = (metadata.get('custom_data') or {}).get(STATUS_KEY, 'unknown')
+    metadata = yaml.safe_load((Path(path) / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    return (metadata.get('custom_data') or {}).get(STATUS_KEY, 'unknown')
+
+
+def _read(path: Path, require_complete: bool) -> BagEpisode:
+    status = bag_status(path)
     if require_complete and status != 'complete':
         raise BagError(f'{path}: the recording is marked {status}: the episode did not finish')
     with Reader(path) as reader:

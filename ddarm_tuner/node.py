@@ -90,6 +90,7 @@ class TunerNode(GraphDriver):
                                   self.values['storage']) as bag:
                 result = self.run_episode(executor, spec, plan, bag, timeout=self.values['episode_timeout'])
                 bag.close(complete=True)
+            # The episode is on disk and closed: scoring it needs no ROS.
             scored = score_bag(path)
             run.add_episode({'name': name, 'bag': str(path), **{key: scored[key] for key in (
                 'I1', 'I2', 'I', 'diverged', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque',
@@ -114,9 +115,12 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         status = 'interrupted'
     except (EpisodeError, BagError, ParameterException, RuntimeError) as error:
-        print(f'tuner: {error}', flush=True)
-        if run is not None:
-            run.log.error('%s', error)
+        if not rclpy.ok():  # a ROS call raced the shutdown of a SIGINT/SIGTERM
+            status = 'interrupted'
+        else:
+            print(f'tuner: {error}', flush=True)
+            if run is not None:
+                run.log.error('%s', error)
     finally:
         if run is not None:
             run.finish(status)
