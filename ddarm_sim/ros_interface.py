@@ -23,8 +23,10 @@ DIAGNOSTICS_TOPIC = '/diagnostics'
 
 # One profile per topic, used on both sides: a reliable subscriber hears nothing from a
 # best-effort publisher. Lockstep needs every sample, so states and commands are reliable.
-# Keep-all: a slow recorder holds the publisher back instead of losing samples.
-SAMPLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+# A deep keep-last history (10 s at 100 Hz): a recorder that lags keeps every sample, and one
+# that died never blocks the plant (keep-all would, until DDS noticed). A recorder that lags
+# further loses samples and says so: the driver refuses an episode with a sample missing.
+SAMPLE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 # The programmed motion is latched: a controller started later still receives it.
 REFERENCE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,

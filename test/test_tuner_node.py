@@ -36,7 +36,12 @@ def stop(processes):
     for process in processes:
         process.send_signal(signal.SIGINT)
     for process in processes:
-        process.wait(timeout=20)
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+            raise
 
 
 @pytest.mark.parametrize('law', ['computed_torque', 'pd_gravity'])
