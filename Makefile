@@ -12,9 +12,9 @@ $(BIN)/.installed: setup.py setup.cfg package.xml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $@
 
+# Each run writes a new folder: runs/paper-<date>-<time>/REPORT.md, results.json, bags/, figures/.
 run: $(BIN)/.installed
-	$(BIN)/ddarm episode --controller computed_torque --omega 15
-	$(BIN)/ddarm episode --controller pd_gravity --omega 10 --delay 0
+	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/ddarm reproduce --out runs/paper-$$(date +%Y%m%d-%H%M%S)
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q

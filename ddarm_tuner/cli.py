@@ -257,6 +257,37 @@ def command_tune(args: argparse.Namespace) -> int:
     return 0 if report['agree'] else 2
 
 
+def command_reproduce(args: argparse.Namespace) -> int:
+    from ddarm_tuner.bags import checked_output_path
+    from ddarm_tuner.experiments import Budget, Reproduction
+    from ddarm_tuner.report import write_report
+    from ddarm_tuner.ros_episode import GraphSession
+
+    out = checked_output_path(args.out)
+    out.mkdir(parents=True)
+    started = time.perf_counter()
+
+    def progress(message: str) -> None:
+        print(f'[{time.perf_counter() - started:6.1f} s] {message}', file=sys.stderr, flush=True)
+
+    reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(),
+                                shlex.join(['ddarm', *args.argv]), progress)
+    gains = reproduction.search_all()
+    progress('running every reported episode through the ROS graph (lockstep), recording each')
+    with GraphSession(out / 'nodes') as session:
+        reproduction.run_episodes(session, gains)
+    reproduction.judge_claims()
+    results = reproduction.results
+    results['wall_time_s'] = time.perf_counter() - started
+    (out / 'results.json').write_text(json.dumps(results, indent=2))
+    written = write_report(out, results)
+    progress(f'done: {out / "REPORT.md"} ({len(written)} files), results in {out / "results.json"}')
+    for claim in results['claims']:
+        print(f"{'REPRODUCED    ' if claim['reproduced'] else 'NOT REPRODUCED'}  {claim['claim']}: "
+              f"{claim['evidence']}")
+    return 0
+
+
 def command_plant(args: argparse.Namespace) -> int:
     from ddarm_sim.node import main as plant_main
 
@@ -318,6 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     add_output_arguments(tune)
     tune.set_defaults(handler=command_tune)
+    reproduce = commands.add_parser('reproduce', help="reproduce the paper's Tables 2-4 and section 2 through "
+                                                     'the ROS graph, with a report')
+    reproduce.add_argument('--out', default='runs/paper', help='output folder, new (runs/paper)')
+    reproduce.add_argument('--quick', action='store_true',
+                           help='small search budgets and three τ values: a first look in well under a minute')
+    reproduce.set_defaults(handler=command_reproduce)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')
     score.add_argument('--json', action='store_true', help='one JSON object per bag, one per line')
