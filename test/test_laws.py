@@ -121,3 +121,31 @@ def test_steady_state_formulas_and_the_smallest_omega(arm):
     np.testing.assert_allclose(pd_gravity_error(np.ones(3), np.zeros(3), np.zeros(3), kp), 0.01)
     # e_i = c_i / ω²: with c = (0, 4, 1) and a permitted 0.01, ω² = 400.
     assert smallest_omega(np.array([0.0, 4.0, 1.0]), np.ones(3), np.full(3, 0.01)) == pytest.approx(20.0)
+
+
+def test_the_sampled_model_boundary_scales_with_the_period_and_grows_without_delay():
+    from ddarm_control.gains import largest_stable_omega
+
+    for delay in (0, 1, 2):
+        products = [largest_stable_omega(period, delay) * period for period in (0.005, 0.01, 0.02, 0.05)]
+        np.testing.assert_allclose(products, products[0], rtol=1e-9)  # only ωΔ matters
+    assert largest_stable_omega(0.01, 0) > largest_stable_omega(0.01, 1) > largest_stable_omega(0.01, 2)
+    assert largest_stable_omega(0.01, 1) > 15  # the paper's ω = 15 at 100 Hz
+
+
+def test_the_sampled_model_boundary_matches_the_simulated_arm():
+    import dataclasses
+
+    from ddarm_control.gains import largest_stable_omega
+    from ddarm_tuner.episodes import EpisodeSpec, run_episode
+
+    period = 0.01
+    boundary = largest_stable_omega(period, 1)
+    spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, period=period, delay=1)
+    worst = {}
+    for factor in (0.9, 1.1):
+        omega = factor * boundary
+        result = run_episode(dataclasses.replace(spec, kp=(omega**2,) * 3, kv=(2 * omega,) * 3))
+        late = np.abs(result.errors[-len(result.errors) // 10:])  # the last tenth: decayed, or growing
+        worst[factor] = np.inf if result.diverged else float(late.max())
+    assert np.isfinite(worst[0.9]) and worst[1.1] > 10 * worst[0.9]
