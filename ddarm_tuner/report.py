@@ -310,10 +310,23 @@ Gains:
 """
 
 
+def _table4_cases(results: dict) -> list:
+    """Table 4's cases (trajectory, T, Δ) in the order they first appear."""
+    cases = []
+    for row in results['table4']:
+        case = (row['trajectory'], row['T'], row['period'])
+        if case not in cases:
+            cases.append(case)
+    return cases
+
+
 def _table4(results: dict, cells: _Cells) -> str:
     header = ['case', 'controller', 'd', 'I', 'paper', 'I1', 'paper', 'I2', 'paper', 'k_p', 'k_v']
+    cases = _table4_cases(results)
     body = []
-    for row in results['table4']:
+    # As the paper: the two controllers of a case side by side.
+    for row in sorted(results['table4'], key=lambda row: (cases.index((row['trajectory'], row['T'], row['period'])),
+                                                            CONTROLLERS.index(row['controller']))):
         paper = row['paper'] or {}
         body.append([_case(row), CONTROLLER_NAMES[row['controller']], str(row['delay']),
                      cells.index(row, 'I'), paper_number(paper.get('I')),
@@ -377,8 +390,11 @@ def _section2(results: dict, cells: _Cells) -> str:
     stability = []
     for row in sorted(section2['stability'], key=lambda row: row['period']):
         stable = 'yes' if row['omega_15_stable'] else '**no**'
+        episode = cells.link(number(row['I1_at_omega_15']), row['bag'])
+        if row.get('diverged_at_omega_15'):  # a key experiments.py adds beyond the schema's
+            episode += ' **diverged**'
         stability.append([f"{row['period']:g}", f"{1 / row['period']:g}", number(row['omega_max_stable']),
-                          stable, cells.link(number(row['I1_at_omega_15']), row['bag'])])
+                          stable, episode])
     return f"""## Section 2: gains from simplified models
 
 ### ω-rule gains
@@ -586,11 +602,7 @@ def index_vs_tau_figure(path: Path, results: dict) -> None:
 
 def table4_figure(path: Path, results: dict) -> None:
     """Table 4 as grouped bars: per case, each controller's I1 and I2 stacked, ours beside the paper's."""
-    cases = []
-    for row in results['table4']:
-        case = (row['trajectory'], row['T'], row['period'])
-        if case not in cases:
-            cases.append(case)
+    cases = _table4_cases(results)
     rows = _by_key(results['table4'], 'controller', 'trajectory', 'T', 'period')
     figure = _new_figure(13, 5.5)
     axis = figure.subplots()
@@ -641,8 +653,8 @@ def stability_figure(path: Path, results: dict) -> None:
     axis.set_yscale('log')
     axis.plot(periods, [row['omega_max_stable'] for row in rows], '-', color='0.4',
               label='largest stable ω (the boundary)')
-    for stable, marker, label in ((True, 'o', f'episode at ω = {PAPER_OMEGA:g}: stable'),
-                                  (False, 'X', f'episode at ω = {PAPER_OMEGA:g}: unstable')):
+    for stable, marker, label in ((True, 'o', f'ω = {PAPER_OMEGA:g} stable at this Δ'),
+                                  (False, 'X', f'ω = {PAPER_OMEGA:g} unstable at this Δ')):
         chosen = [row for row in rows if bool(row['omega_15_stable']) == stable]
         if chosen:
             axis.plot([row['period'] for row in chosen], [row['omega_max_stable'] for row in chosen], marker,
@@ -656,6 +668,7 @@ def stability_figure(path: Path, results: dict) -> None:
     axis.set_xticks(periods, [f'{period:g}' for period in periods])
     axis.xaxis.set_minor_formatter(NullFormatter())
     _plain_log_ticks(axis.yaxis)
+    axis.margins(y=0.12)  # room for the value written above the highest point
     axis.set_xlabel('sampling period Δ (s)')
     axis.set_ylabel('ω (rad/s)')
     top = axis.secondary_xaxis('top', functions=(lambda x: 1 / np.maximum(x, 1e-12),

@@ -1,7 +1,6 @@
 """The report: REPORT.md with our figures beside the paper's, linked to their bags, and the PNG figures;
 results without a required key, or an output folder already holding a report, are refused."""
 
-import copy
 import shutil
 import struct
 
@@ -180,9 +179,10 @@ def test_every_figure_is_a_drawn_png(written):
     (lambda results: results['table4'][1]['paper'].pop('I2'), 'table4[1].paper.I2'),
     (lambda results: results['table3'][2].update(controller='pid'), 'table3[2].controller'),
 ])
-def test_results_missing_a_key_or_naming_an_unknown_controller_are_refused_by_name(bags, scores, tmp_path, remove, named):
+def test_results_missing_a_key_or_naming_an_unknown_controller_are_refused_by_name(bags, scores, tmp_path, remove,
+                                                                                   named):
     out = output_folder(bags, tmp_path)
-    results = copy.deepcopy(synthetic_results(scores))
+    results = synthetic_results(scores)
     remove(results)
     with pytest.raises(ValueError, match=named.replace('[', r'\[').replace(']', r'\]')):
         write_report(out, results)
