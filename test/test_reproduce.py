@@ -1,0 +1,59 @@
+"""`ddarm reproduce --quick`: the report, bags and figures exist, and every table number is what `ddarm score`
+gets from its bag."""
+
+import json
+
+import pytest
+
+from ddarm_tuner.bags import score_bag
+from ddarm_tuner.cli import main
+
+PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+
+
+@pytest.fixture(scope='module')
+def reproduction(tmp_path_factory):
+    out = tmp_path_factory.mktemp('paper') / 'paper'
+    assert main(['reproduce', '--quick', '--out', str(out)]) == 0
+    return out, json.loads((out / 'results.json').read_text())
+
+
+def test_the_report_and_its_figures_exist(reproduction):
+    out, results = reproduction
+    report = (out / 'REPORT.md').read_text()
+    for figure in ('tracking', 'index_vs_tau', 'table4', 'stability'):
+        path = out / 'figures' / f'{figure}.png'
+        assert path.read_bytes()[:8] == PNG_SIGNATURE and path.stat().st_size > 10_000
+        assert f'figures/{figure}.png' in report
+    for claim in results['claims']:
+        assert claim['claim'] in report
+
+
+def test_every_table_number_is_the_score_of_its_bag(reproduction):
+    out, results = reproduction
+    rows = (results['table2'] + results['table3'] + results['table4'] + results['section2']['omega_rules']
+            + [row for row in results['section2']['omega_procedure'] if row['bag']])
+    assert len(rows) >= 2 * 3 * 2 + 2 * 3 + 8
+    for row in rows:
+        scored = score_bag(out / row['bag'])
+        for key in ('I1', 'I2', 'I'):
+            assert row[key] == scored[key], (row['bag'], key)
+    for row in results['section2']['stability']:
+        assert row['I1_at_omega_15'] == score_bag(out / row['bag'])['I1']
+
+
+def test_results_have_the_documented_shape(reproduction):
+    _, results = reproduction
+    assert len(results['table4']) == 8
+    for row in results['table4']:
+        assert {'controller', 'trajectory', 'T', 'period', 'I', 'I1', 'I2', 'kp', 'kv', 'bag', 'paper'} <= set(row)
+        assert row['controller'] in ('pd_gravity', 'computed_torque')
+        assert row['delay'] == (0 if row['controller'] == 'pd_gravity' else 1)
+    assert {row['limited'] for row in results['table2']} == {False, True}
+    assert results['quick'] is True and results['claims']
+
+
+def test_reproduce_never_overwrites(reproduction, capsys):
+    out, _ = reproduction
+    assert main(['reproduce', '--quick', '--out', str(out)]) == 2
+    assert 'exists already' in capsys.readouterr().err
