@@ -10,8 +10,6 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
@@ -24,7 +22,8 @@ from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, 
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, MessageError, Reference, descriptor, joint_state_msg,
-                                     proposed_values, read_joint_state, read_reference, undeclared_overrides)
+                                     proposed_values, read_joint_state, read_reference, run_node,
+                                     undeclared_overrides)
 
 # States that arrive before the programmed motion wait for it, up to this many.
 MAX_WAITING_STATES = 10_000
@@ -225,21 +224,7 @@ def main(args=None, law: str | None = None) -> int:
             print(f'usage: controller {{{",".join(CONTROLLERS)}}} [--ros-args ...]', file=sys.stderr)
             return 2
         law = non_ros[0]
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ControllerNode(law)
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (GainError, ModelError, ParameterException) as error:
-        print(f'{law}: refused to start: {error}', flush=True)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(lambda: ControllerNode(law), law, (GainError, ModelError), args)
 
 
 def main_pd_gravity(args=None) -> int:

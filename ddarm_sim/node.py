@@ -6,13 +6,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterException
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -24,7 +21,7 @@ from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, distu
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS, MessageError,
                                      descriptor, joint_state_msg, proposed_values, read_joint_state,
-                                     time_msg, undeclared_overrides)
+                                     run_node, time_msg, undeclared_overrides)
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 
 MODES = ('lockstep', 'realtime')
@@ -316,21 +313,7 @@ class PlantNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PlantNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (PlantError, ModelError, ParameterException) as error:
-        print(f'plant: refused to start: {error}', flush=True)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PlantNode, 'plant', (PlantError, ModelError), args)
 
 
 if __name__ == '__main__':

@@ -209,3 +209,30 @@ def proposed_values(node, changes) -> dict:
     values = {name: parameter.value for name, parameter in node._parameters.items()}
     values.update({parameter.name: parameter.value for parameter in changes})
     return values
+
+
+def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
+    """A node's whole life as an executable: 0 after a normal end (Ctrl-C, SIGTERM, shutdown), 2 if refused.
+
+    `make_node` builds the node after rclpy.init; an exception in `refusals` while it does (a bad
+    parameter file, say) is printed as the reason the node refused to start.
+    """
+    import rclpy
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = make_node()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (*refusals, ParameterException) as error:
+        print(f'{name}: refused to start: {error}', flush=True)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,7 +1,5 @@
 """Shared by the graph tests: the plant and a controller as nodes of this process, driven by the episode driver."""
 
-import time
-
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -34,12 +32,6 @@ class InProcessGraph:
 
     def run(self, timeout=60.0):
         return self.driver.run_episode(self.executor, self.spec, self.plan, self.bag, timeout=timeout)
-
-    def spin_until(self, condition, timeout=10.0):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < deadline, 'condition not met in time'
-            self.executor.spin_once(timeout_sec=0.02)
 
     def close(self):
         self.executor.shutdown()

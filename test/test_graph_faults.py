@@ -22,7 +22,7 @@ from ddarm_control.laws import ComputedTorqueLaw, Measurement, ReferencePoint
 from ddarm_control.node import ControllerNode
 from ddarm_sim.model import Arm
 from ddarm_sim.node import ENDED, PlantNode
-from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg, read_reference,
+from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg,
                                      reference_msg)
 from ddarm_tuner.episodes import EpisodeSpec, plan_episode
 from conftest import claim_domain_id

@@ -8,7 +8,6 @@ import sys
 import time
 
 import pytest
-import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
