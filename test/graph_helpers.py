@@ -37,3 +37,12 @@ class InProcessGraph:
         self.executor.shutdown()
         for node in (self.plant, self.controller, self.driver):
             node.destroy_node()
+
+
+def run_in_process(context, spec, **options):
+    """One episode of `spec` on in-process plant, controller and driver nodes."""
+    graph = InProcessGraph(context, spec, **options)
+    try:
+        return graph.run()
+    finally:
+        graph.close()

@@ -5,7 +5,7 @@ import pytest
 
 from ddarm_tuner.episodes import EpisodeSpec, run_episode
 from ddarm_tuner.ros_episode import run_graph_episode
-from graph_helpers import InProcessGraph
+from graph_helpers import run_in_process
 
 GAINS = {'computed_torque': dict(kp=(225.0,) * 3, kv=(30.0,) * 3),
          'pd_gravity': dict(kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))}
@@ -24,22 +24,14 @@ def assert_same_episode(graph_result, reference):
 @pytest.mark.parametrize('trajectory', [1, 2])
 def test_in_process_graph_equals_the_core(ros_context, controller, delay, trajectory):
     spec = EpisodeSpec(controller=controller, **GAINS[controller], delay=delay, trajectory=trajectory)
-    graph = InProcessGraph(ros_context, spec)
-    try:
-        assert_same_episode(graph.run(), run_episode(spec))
-    finally:
-        graph.close()
+    assert_same_episode(run_in_process(ros_context, spec), run_episode(spec))
 
 
 def test_limits_disturbance_and_plant_options_go_through_the_graph(ros_context):
     spec = EpisodeSpec(controller='computed_torque', kp=(900.0,) * 3, kv=(60.0,) * 3, tau=0.1,
                        torque_limit='paper', external_torque=(5.0, -5.0, 1.0), viscous_friction=(1.0, 1.0, 0.5),
                        coulomb_friction=(0.5, 0.5, 0.2), mass_scale=(1.0, 1.1, 0.9))
-    graph = InProcessGraph(ros_context, spec)
-    try:
-        result = graph.run()
-    finally:
-        graph.close()
+    result = run_in_process(ros_context, spec)
     reference = run_episode(spec)
     assert np.any(np.abs(reference.command) > reference.plan.torque_limit)  # the limit is exercised
     assert_same_episode(result, reference)
@@ -47,11 +39,7 @@ def test_limits_disturbance_and_plant_options_go_through_the_graph(ros_context):
 
 def test_a_diverging_episode_over_the_graph_is_reported_like_the_core(ros_context):
     spec = EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3, delay=1)
-    graph = InProcessGraph(ros_context, spec)
-    try:
-        result = graph.run()
-    finally:
-        graph.close()
+    result = run_in_process(ros_context, spec)
     reference = run_episode(spec)
     assert result.diverged_at == reference.diverged_at
     assert_same_episode(result, reference)
