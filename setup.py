@@ -36,7 +36,6 @@ setup(
         'matplotlib==3.11.2',
         'cma==4.5.0',
         'numba==0.68.1',
-        'tqdm==4.70.1',
         'PyYAML==6.0.3',
     ],
     extras_require={
