@@ -21,9 +21,10 @@ from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, 
                                 SampledController, checked_delay, checked_gains, make_law)
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                     SAMPLE_QOS, MessageError, Reference, descriptor, joint_state_msg,
+                                     SAMPLE_QOS, Reference, descriptor, joint_state_msg,
                                      proposed_values, read_joint_state, read_reference, run_node,
                                      undeclared_overrides)
+from ddarm_sim.samples import MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
 MAX_WAITING_STATES = 10_000

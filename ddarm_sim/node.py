@@ -19,9 +19,10 @@ from std_srvs.srv import Trigger
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
-                                     EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS, MessageError,
+                                     EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, proposed_values, read_joint_state,
                                      run_node, time_msg, undeclared_overrides)
+from ddarm_sim.samples import MessageError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 
 MODES = ('lockstep', 'realtime')

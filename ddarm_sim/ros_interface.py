@@ -15,6 +15,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ddarm_sim.samples import MessageError, joint_order, sample_at
+
 JOINT_STATES_TOPIC = 'joint_states'
 EFFORT_COMMAND_TOPIC = 'effort_command'
 REFERENCE_TOPIC = 'reference'
@@ -37,13 +39,8 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=R
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
 
-# Refused before any work (FAULTS.md 6): far beyond a joint count or an episode length we run.
-MAX_JOINTS = 64
+# Refused before any work (FAULTS.md 6): far beyond an episode length we run.
 MAX_REFERENCE_POINTS = 1_000_000
-
-
-class MessageError(ValueError):
-    """A message that cannot be used as it is; the text names the problem."""
 
 
 def time_msg(seconds: float) -> Time:
@@ -65,11 +62,7 @@ def seconds(stamp: Time | Duration) -> float:
 
 def sample_index(stamp: Time, period: float) -> int:
     """n for a stamp t_n = n Δ; refuses a negative stamp or one between sample instants."""
-    t = seconds(stamp)
-    n = round(t / period)
-    if n < 0 or abs(t - n * period) > 1e-6 * period + 1e-9:
-        raise MessageError(f'stamp {t:.9f} s is not a sample instant of period {period} s')
-    return int(n)
+    return sample_at(seconds(stamp), period)
 
 
 def _finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
@@ -80,20 +73,6 @@ def _finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
     if bad.size:
         raise MessageError(f'{name}: {field} is not finite at index {bad.tolist()}: {array[bad].tolist()}')
     return array
-
-
-def joint_order(names, joints: list[str], what: str) -> np.ndarray:
-    """Indices that put the message's joints in our order; refuses unknown, missing or duplicate names."""
-    names = list(names)
-    if len(names) > MAX_JOINTS:
-        raise MessageError(f'{what}: {len(names)} joint names is more than the {MAX_JOINTS} allowed')
-    if len(set(names)) != len(names):
-        raise MessageError(f'{what}: duplicate joint names {names}')
-    unknown = sorted(set(names) - set(joints))
-    missing = [joint for joint in joints if joint not in names]
-    if unknown or missing:
-        raise MessageError(f'{what}: unknown joints {unknown}, missing joints {missing} (expected {joints})')
-    return np.array([names.index(joint) for joint in joints])
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import yaml
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from ddarm_sim.samples import MessageError, joint_order, sample_at
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, score
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -134,18 +135,17 @@ def deserialize(raw: bytes | memoryview, msgtype: str):
 
 
 def _sample(stamp, period: float, topic: str) -> int:
-    t = stamp.sec + stamp.nanosec * 1e-9
-    n = int(round(t / period))
-    if n < 0 or abs(t - n * period) > 1e-6 * period + 1e-9:
-        raise BagError(f'{topic}: stamp {t} s is not a sample instant of period {period} s')
-    return n
+    try:
+        return sample_at(stamp.sec + stamp.nanosec * 1e-9, period)
+    except MessageError as error:
+        raise BagError(f'{topic}: {error}') from error
 
 
 def _in_order(names, joints: list, topic: str) -> np.ndarray:
-    names = list(names)
-    if sorted(names) != sorted(joints) or len(set(names)) != len(names):
-        raise BagError(f'{topic}: joints {names} are not the episode joints {joints} (another robot?)')
-    return np.array([names.index(joint) for joint in joints])
+    try:
+        return joint_order(names, joints, topic)
+    except MessageError as error:
+        raise BagError(f'{error} (a bag from another robot?)') from error
 
 
 def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpisode:

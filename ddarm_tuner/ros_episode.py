@@ -30,7 +30,8 @@ from trajectory_msgs.msg import JointTrajectory
 from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                     SAMPLE_QOS, MessageError, read_joint_state, reference_msg)
+                                     SAMPLE_QOS, read_joint_state, reference_msg)
+from ddarm_sim.samples import MessageError
 from ddarm_tuner.bags import EpisodeBagWriter
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, load_arm, plan_episode, score
 
