@@ -10,9 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ddarm_control.gains import largest_stable_omega
+from ddarm_control.gains import largest_stable_omega, omega_rule_computed_torque
+from ddarm_sim.trajectory import paper_trajectory
 from ddarm_tuner.bags import checked_output_path
-from ddarm_tuner.episodes import EpisodeSpec
+from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega
 from ddarm_tuner.procedures import omega_procedure
 from ddarm_tuner.ros_episode import GraphSession, record_and_score
 from ddarm_tuner.batch import simulate_batch
@@ -191,9 +192,6 @@ class Reproduction:
                 **row, 'paper': dict(zip(('I', 'I1', 'I2'), paper))})
 
     def _section2(self, session, controller: str) -> None:
-        from ddarm_tuner.episodes import gains_from_omega
-        from ddarm_sim.trajectory import paper_trajectory
-
         template = _template(controller)
         omega = OMEGA_RULES[controller]
         kp, kv = gains_from_omega(controller, omega, final_position=paper_trajectory(1, 1.0).qf)
@@ -216,8 +214,6 @@ class Reproduction:
 
     def _stability(self, session) -> None:
         """Computed torque (delay 1) at ω = 15 for each Δ, against the sampled model's boundary ω*(Δ)."""
-        from ddarm_control.gains import omega_rule_computed_torque
-
         template = _template('computed_torque')
         for period in STABILITY_PERIODS:
             boundary = largest_stable_omega(period, template.delay)

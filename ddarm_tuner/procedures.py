@@ -74,7 +74,7 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     omega_min = smallest_omega(error_unit, gain_scale, permitted)
     final = paper_trajectory(spec.trajectory, spec.duration).qf
     unlimited = dataclasses.replace(spec, torque_limit='none')
-    steps, chosen = [], None
+    steps, chosen, chosen_gains = [], None, (None, None)
     # A disturbance-free arm needs no minimum: the raising then starts from one step.
     omega = max(omega_min, omega_step)
     while omega <= omega_max + 1e-12:
@@ -88,7 +88,6 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
         steps.append(OmegaStep(float(omega), to_limit, to_nominal, result.diverged, accepted, result.indices))
         if not accepted:
             break
-        chosen = float(omega)
+        chosen, chosen_gains = float(omega), (kp, kv)
         omega += omega_step
-    gains = (None, None) if chosen is None else gains_from_omega(spec.controller, chosen, spec.urdf, final)
-    return OmegaChoice(omega_min, error_unit / (gain_scale * omega_min**2), chosen, *gains, steps)
+    return OmegaChoice(omega_min, error_unit / (gain_scale * omega_min**2), chosen, *chosen_gains, steps)
