@@ -200,6 +200,9 @@ def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
 
+    from ddarm_sim.lifetime import follow_parent
+
+    follow_parent()
     rclpy.init(args=args)
     node = None
     try:

@@ -1,0 +1,40 @@
+"""Node processes that ddarm starts end with the process that started them, even if it is killed outright.
+
+The parent names itself in DDARM_PARENT_PID; the child asks the Linux kernel to send it SIGTERM
+when that parent dies (prctl PR_SET_PDEATHSIG), so a SIGKILL of a driver leaves no node
+running on (FAULTS.md 23). SIGTERM rather than SIGKILL: the node leaves the DDS graph cleanly.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import sys
+
+PARENT_PID_VARIABLE = 'DDARM_PARENT_PID'
+_PR_SET_PDEATHSIG = 1
+
+
+def child_environment(environment: dict | None = None) -> dict:
+    """The environment for a node process that must not outlive this process."""
+    environment = dict(os.environ if environment is None else environment)
+    environment[PARENT_PID_VARIABLE] = str(os.getpid())
+    return environment
+
+
+def follow_parent() -> None:
+    """In a node process started by ddarm: end when the parent ends; a no-op for hand-started nodes.
+
+    The kernel's notice goes to the thread that forked us, so the parent starts nodes from its
+    main thread. A parent that died before the request took effect is caught by the check after it.
+    """
+    parent = os.environ.get(PARENT_PID_VARIABLE)
+    if not parent:
+        return
+    if sys.platform.startswith('linux'):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), 'prctl(PR_SET_PDEATHSIG) failed')
+    if os.getppid() != int(parent):
+        raise SystemExit(f'the process that started this node ({parent}) is gone; not starting')
