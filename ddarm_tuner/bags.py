@@ -1,23 +1,33 @@
 """Episodes as rosbag2 bags: the recorder's writer, and the indices scored from a bag alone.
 
 A bag holds what the graph carried (states, commands, the reference, /clock, the plant's
-diagnostics) and, on /ddarm/episode and in the metadata's custom data, the episode's
-configuration. Scoring reads nothing else: no model, no node.
+diagnostics) with the QoS its publishers offered, and, on /ddarm/episode and in the metadata's
+custom data, the episode's configuration (ddarm.episode), whether it finished (ddarm.status) and
+who published what (ddarm.publishers). Scoring reads nothing else: no model, no node; it refuses
+evidence that is missing, duplicated, or from more than one publisher.
 """
 
 from __future__ import annotations
 
 import json
+import sqlite3
+import weakref
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import yaml
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
 from ddarm_sim.samples import MessageError, joint_order, sample_at
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, score
+from ddarm_tuner.interrupts import critical_section
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -30,12 +40,89 @@ TOPICS = {
     EPISODE_TOPIC: 'std_msgs/msg/String',
 }
 REQUIRED_TOPICS = ('/joint_states', '/effort_command', '/reference', EPISODE_TOPIC)
+# The topics the indices are computed from: each must come from one publisher.
+SAMPLED_TOPICS = ('/joint_states', '/effort_command', '/clock', '/reference')
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 STATUS_KEY = 'ddarm.status'
+EPISODE_KEY = 'ddarm.episode'
+PUBLISHERS_KEY = 'ddarm.publishers'
 
 
 class BagError(ValueError):
     """A bag that cannot be written where asked, or cannot be scored; the text names the problem."""
+
+
+class TopicQos(TypedDict):
+    """The QoS one publisher offered on a topic, as the bag records it (rosbag2's offered_qos_profiles).
+
+    reliability: 'reliable' or 'best_effort'; durability: 'volatile' or 'transient_local';
+    history: 'keep_last', 'keep_all', or 'unknown'; depth: an int >= 0. DDS discovery does not
+    carry a publisher's history, so the graph (rclpy's get_publishers_info_by_topic) reports
+    'unknown' with depth 0, and rosbag2 records that; `ros2 bag play` uses its own history anyway.
+    """
+
+    reliability: str
+    durability: str
+    history: str
+    depth: int
+
+
+# These mirror ddarm_sim.ros_interface's SAMPLE_QOS, REFERENCE_QOS, CLOCK_QOS and DIAGNOSTICS_QOS
+# (restated, since that module imports rclpy). /ddarm/episode has no DDS publisher: it is
+# recorded latched, so a replay hands the configuration to a late subscriber.
+DEFAULT_QOS: dict[str, TopicQos] = {
+    '/joint_states': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
+    '/effort_command': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
+    '/reference': {'reliability': 'reliable', 'durability': 'transient_local', 'history': 'keep_last', 'depth': 1},
+    '/clock': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 100},
+    '/diagnostics': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 10},
+    EPISODE_TOPIC: {'reliability': 'reliable', 'durability': 'transient_local', 'history': 'keep_last', 'depth': 1},
+}
+_RELIABILITY = {'reliable': QosReliability.RELIABLE, 'best_effort': QosReliability.BEST_EFFORT}
+_DURABILITY = {'volatile': QosDurability.VOLATILE, 'transient_local': QosDurability.TRANSIENT_LOCAL}
+_HISTORY = {'keep_last': QosHistory.KEEP_LAST, 'keep_all': QosHistory.KEEP_ALL, 'unknown': QosHistory.UNKNOWN}
+# RMW_DURATION_INFINITE: what the graph reports for ddarm's publishers, none of which sets a
+# deadline, lifespan or liveliness lease.
+_INFINITE = QosTime(9223372036, 854775807)
+
+
+def _rosbags_qos(path: Path, topic: str, profile) -> Qos:
+    if not isinstance(profile, Mapping) or set(profile) != TopicQos.__required_keys__:
+        raise BagError(f'{path}: offered QoS for {topic} must be a mapping with exactly the keys '
+                       f'{sorted(TopicQos.__required_keys__)}, got {profile!r}')
+    for key, names in (('reliability', _RELIABILITY), ('durability', _DURABILITY), ('history', _HISTORY)):
+        if profile[key] not in names:
+            raise BagError(f'{path}: offered QoS for {topic}: {key} must be one of {sorted(names)}, '
+                           f'got {profile[key]!r}')
+    depth = profile['depth']
+    if not isinstance(depth, int) or isinstance(depth, bool) or depth < 0:
+        raise BagError(f'{path}: offered QoS for {topic}: depth must be an int >= 0, got {depth!r}')
+    return Qos(_HISTORY[profile['history']], depth, _RELIABILITY[profile['reliability']],
+               _DURABILITY[profile['durability']], _INFINITE, _INFINITE, QosLiveliness.AUTOMATIC, _INFINITE,
+               False)
+
+
+def _offered_profiles(path: Path, offered_qos: Mapping[str, Sequence[TopicQos]] | None) -> dict[str, list[Qos]]:
+    offered_qos = {} if offered_qos is None else offered_qos
+    unknown = sorted(set(offered_qos) - set(TOPICS))
+    if unknown:
+        raise BagError(f'{path}: offered QoS for {unknown}, which are not topics of an episode bag {sorted(TOPICS)}')
+    profiles = {}
+    for topic in TOPICS:
+        given = offered_qos.get(topic, [DEFAULT_QOS[topic]])
+        if isinstance(given, Mapping):
+            raise BagError(f'{path}: offered QoS for {topic} must be a list of profiles, one per publisher')
+        profiles[topic] = [_rosbags_qos(path, topic, profile) for profile in given]
+    return profiles
+
+
+def _reason(error: Exception) -> str:
+    """What the OS said, without Python's errno prefix; sqlite keeps the OS's errno to itself and says what it can."""
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    if isinstance(error, sqlite3.Error) and getattr(error, 'sqlite_errorname', None):
+        return f'{error} ({error.sqlite_errorname})'
+    return str(error) or type(error).__name__
 
 
 def checked_output_path(path: Path | str) -> Path:
@@ -58,46 +145,133 @@ def child_path(folder: Path | str, name: str) -> Path:
     return checked_output_path(Path(folder) / name)
 
 
+def _close_abandoned(writer: Writer) -> None:
+    with suppress(OSError, sqlite3.Error, WriterError):
+        writer.set_custom_data(STATUS_KEY, 'incomplete')
+        writer.close()
+
+
 class EpisodeBagWriter:
     """Writes one episode's bag; `close(complete)` records whether the episode finished.
 
     Use as a context manager: an exception while recording still closes the bag, marked
     incomplete, so a scorer never takes it for a good run.
+
+    `offered_qos` maps a topic of TOPICS to the profiles its publishers offered, one TopicQos per
+    publisher heard (rosbag2's convention); a topic it leaves out gets DEFAULT_QOS, what ddarm's
+    own publisher offers. The connections are made when the bag opens, so the QoS must be known
+    by then. Any failure to write (a full disk, a file-size limit, a storage error) is a BagError
+    naming the bag and the reason; the storage is then abandoned without metadata.yaml, so the
+    bag can never be taken for a complete one, and every later write or close(complete=True)
+    raises the same error.
     """
 
-    def __init__(self, path: Path | str, episode: dict, storage: str = 'mcap') -> None:
+    def __init__(self, path: Path | str, episode: dict, storage: str = 'mcap',
+                 offered_qos: Mapping[str, Sequence[TopicQos]] | None = None) -> None:
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
         self.path = checked_output_path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=STORAGES[storage])
-        self.writer.open()
-        self.connections = {topic: self.writer.add_connection(topic, msgtype, typestore=TYPESTORE)
-                            for topic, msgtype in TOPICS.items()}
+        profiles = _offered_profiles(self.path, offered_qos)
+        self.status: str | None = None  # 'complete' or 'incomplete' once closed
+        self.failure: str | None = None
+        self.writer: Writer | None = None
         text = json.dumps(episode, sort_keys=True)
-        self.writer.set_custom_data('ddarm.episode', text)
+        with self._writing():
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=STORAGES[storage])
+            self.writer.open()
+            # A writer dropped unclosed (a signal between its opening and the `with` that closes it, an
+            # exception in here) is still closed, marked incomplete, when it is collected or at exit.
+            self._abandoned = weakref.finalize(self, _close_abandoned, self.writer)
+            self.connections = {topic: self.writer.add_connection(topic, msgtype, typestore=TYPESTORE,
+                                                                  offered_qos_profiles=profiles[topic])
+                                for topic, msgtype in TOPICS.items()}
+            self.writer.set_custom_data(EPISODE_KEY, text)
         self.write_message(EPISODE_TOPIC, 0, TYPESTORE.types['std_msgs/msg/String'](data=text))
-        self.closed = False
+
+    @contextmanager
+    def _writing(self):
+        try:
+            yield
+        except (OSError, sqlite3.Error, WriterError) as error:
+            self.failure = f'{self.path}: cannot write the bag: {_reason(error)}'
+            if self.writer is not None:
+                if hasattr(self, '_abandoned'):
+                    self._abandoned.detach()
+                # The storage is failing already: closing it may fail again, and the first error is the one to report.
+                with suppress(OSError, sqlite3.Error):
+                    self.writer.abort()
+            raise BagError(self.failure) from error
+
+    def _check_open(self, what: str) -> None:
+        if self.failure is not None:
+            raise BagError(self.failure)
+        if self.status is not None:
+            raise BagError(f'{self.path}: the bag is closed (marked {self.status}); cannot record {what}')
 
     def write(self, topic: str, timestamp_ns: int, cdr: bytes) -> None:
         """One message as serialized CDR (what rclpy's serialize_message gives)."""
-        self.writer.write(self.connections[topic], int(timestamp_ns), cdr)
+        self._check_open(topic)
+        if topic not in self.connections:
+            raise BagError(f'{self.path}: {topic} is not a topic of an episode bag {sorted(TOPICS)}')
+        with self._writing():
+            self.writer.write(self.connections[topic], int(timestamp_ns), cdr)
 
     def write_message(self, topic: str, timestamp_ns: int, message) -> None:
         self.write(topic, timestamp_ns, TYPESTORE.serialize_cdr(message, TOPICS[topic]))
 
+    def set_publishers(self, publishers: Mapping[str, Sequence[str]]) -> None:
+        """The fully qualified names of the nodes heard publishing each topic, one per publisher.
+
+        Stored as JSON ({topic: [node, ...]}) under custom_data's ddarm.publishers; a scorer
+        refuses a bag whose sampled topics had more than one publisher. A later call replaces it.
+        """
+        self._check_open(PUBLISHERS_KEY)
+        unknown = sorted(set(publishers) - set(TOPICS))
+        if unknown:
+            raise BagError(f'{self.path}: publishers for {unknown}, which are not topics of an episode bag')
+        for topic, nodes in publishers.items():
+            if isinstance(nodes, str) or not all(isinstance(node, str) and node.startswith('/') for node in nodes):
+                raise BagError(f'{self.path}: the publishers of {topic} must be a list of fully qualified '
+                               f'node names, got {nodes!r}')
+        text = json.dumps({topic: list(nodes) for topic, nodes in publishers.items()}, sort_keys=True)
+        with self._writing():
+            self.writer.set_custom_data(PUBLISHERS_KEY, text)
+
     def close(self, complete: bool) -> None:
-        if self.closed:
+        """Close the bag marked complete or incomplete; closing again is a no-op.
+
+        BagError if the bag cannot be closed, or if complete=True is asked of a bag that failed
+        or was already closed incomplete: it is not a complete recording.
+        """
+        if self.failure is not None:
+            if complete:
+                raise BagError(self.failure)
             return
-        self.writer.set_custom_data(STATUS_KEY, 'complete' if complete else 'incomplete')
-        self.writer.close()
-        self.closed = True
+        if self.status is not None:
+            if complete and self.status != 'complete':
+                raise BagError(f'{self.path}: already closed and marked {self.status}; it cannot become complete')
+            return
+        status = 'complete' if complete else 'incomplete'
+        with critical_section(), self._writing():
+            self._abandoned.detach()
+            self.writer.set_custom_data(STATUS_KEY, status)
+            self.writer.close()
+            self.status = status
 
     def __enter__(self) -> EpisodeBagWriter:
         return self
 
     def __exit__(self, kind, error, traceback) -> None:
-        self.close(complete=False)
+        if error is None:
+            self.close(complete=False)
+            return
+        # The exception that ended the recording stays the one raised; a bag that could not even
+        # be closed is added to it.
+        try:
+            self.close(complete=False)
+        except BagError as failure:
+            error.add_note(str(failure))
 
 
 @dataclass
@@ -163,25 +337,82 @@ def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpis
         raise BagError(f'{path}: unreadable bag ({type(error).__name__}: {error})') from error
 
 
+def _custom_data(path: Path | str) -> dict:
+    # From rosbag2's own metadata file, before any storage is opened: a recording marked
+    # incomplete says so even when its storage file is damaged.
+    metadata = yaml.safe_load((Path(path) / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    return metadata.get('custom_data') or {}
+
+
 def bag_status(path: Path | str) -> str:
     """'complete', 'incomplete', or 'unknown' (not written by ddarm), from the bag's metadata."""
-    # rosbags' Reader does not expose custom_data: read it from rosbag2's own metadata file.
-    metadata = yaml.safe_load((Path(path) / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
-    return (metadata.get('custom_data') or {}).get(STATUS_KEY, 'unknown')
+    return _custom_data(path).get(STATUS_KEY, 'unknown')
+
+
+def _repeated(keys) -> list:
+    seen, repeated = set(), set()
+    for key in keys:
+        (repeated if key in seen else seen).add(key)
+    return sorted(repeated)
+
+
+def _by_sample(path: Path, topic: str, messages: list, period: float) -> dict:
+    """Sample index -> the one message stamped at it; two for one sample are refused, not overwritten."""
+    samples = [_sample(message.header.stamp, period, topic) for message in messages]
+    repeated = _repeated(samples)
+    if repeated:
+        raise BagError(f'{path}: {topic} holds more than one message for samples {repeated[:10]}: '
+                       'a second publisher, or messages recorded twice')
+    return dict(zip(samples, messages))
+
+
+def _publishers(path: Path, text) -> dict:
+    try:
+        publishers = json.loads(text)
+    except (TypeError, ValueError):
+        publishers = None
+    if not (isinstance(publishers, dict) and all(
+            isinstance(nodes, list) and all(isinstance(node, str) for node in nodes) for nodes in publishers.values())):
+        raise BagError(f'{path}: custom_data {PUBLISHERS_KEY} is not a JSON object of node-name lists: {text!r}')
+    return publishers
+
+
+def _check_one_source(path: Path, custom: dict, connections: dict) -> None:
+    """Refuse evidence from more than one publisher on a topic the indices depend on (FAULTS.md 25)."""
+    for topic in SAMPLED_TOPICS:
+        if topic in connections and len(profiles := connections[topic].ext.offered_qos_profiles) > 1:
+            raise BagError(f'{path}: {topic} was recorded from {len(profiles)} publishers (its '
+                           'offered_qos_profiles): the evidence may mix two sources')
+    if PUBLISHERS_KEY in custom:
+        publishers = _publishers(path, custom[PUBLISHERS_KEY])
+        for topic in SAMPLED_TOPICS:
+            if len(nodes := publishers.get(topic, [])) > 1:
+                raise BagError(f'{path}: {topic} had {len(nodes)} publishers ({", ".join(nodes)}): '
+                               'the evidence may mix two sources')
 
 
 def _read(path: Path, require_complete: bool) -> BagEpisode:
-    status = bag_status(path)
+    custom = _custom_data(path)
+    status = custom.get(STATUS_KEY, 'unknown')
     if require_complete and status != 'complete':
         raise BagError(f'{path}: the recording is marked {status}: the episode did not finish')
     with Reader(path) as reader:
-        topics = {connection.topic: connection for connection in reader.connections}
-        missing = [topic for topic in REQUIRED_TOPICS if topic not in topics]
+        by_topic = defaultdict(list)
+        for connection in reader.connections:
+            by_topic[connection.topic].append(connection)
+        missing = [topic for topic in REQUIRED_TOPICS if topic not in by_topic]
         if missing:
             raise BagError(f'{path}: missing topics {missing}: not a complete ddarm episode bag')
-        messages: dict = {topic: [] for topic in REQUIRED_TOPICS}
-        wanted = [topics[topic] for topic in REQUIRED_TOPICS]
-        for connection, _, raw in reader.messages(connections=wanted):
+        read = [topic for topic in (*REQUIRED_TOPICS, '/clock') if topic in by_topic]
+        for topic in read:
+            if len(by_topic[topic]) > 1:
+                types = [connection.msgtype for connection in by_topic[topic]]
+                raise BagError(f'{path}: {topic} is recorded on {len(types)} connections ({types}): '
+                               'the evidence may mix two sources')
+        connections = {topic: by_topic[topic][0] for topic in read}
+        _check_one_source(path, custom, connections)
+        messages: dict = {topic: [] for topic in read}
+        for connection, _, raw in reader.messages(connections=list(connections.values())):
             messages[connection.topic].append(deserialize(raw, connection.msgtype))
     if not messages[EPISODE_TOPIC]:
         raise BagError(f'{path}: {EPISODE_TOPIC} holds no configuration')
@@ -196,16 +427,19 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
               for name in ('positions', 'velocities', 'accelerations', 'effort')}
     times = np.array([point.time_from_start.sec + point.time_from_start.nanosec * 1e-9
                       for point in reference.points])
+    stamps = [message.clock.sec * 1_000_000_000 + message.clock.nanosec for message in messages.get('/clock', [])]
+    repeated = _repeated(stamps)
+    if repeated:
+        raise BagError(f'{path}: /clock holds more than one message at t = {[t * 1e-9 for t in repeated[:10]]} s: '
+                       'a second clock, or messages recorded twice')
     states = {}
-    for message in messages['/joint_states']:
+    for n, message in _by_sample(path, '/joint_states', messages['/joint_states'], period).items():
         order = _in_order(message.name, joints, '/joint_states')
-        n = _sample(message.header.stamp, period, '/joint_states')
         states[n] = tuple(None if len(values) == 0 else np.asarray(values)[order]
                           for values in (message.position, message.velocity, message.effort))
     commands = {}
-    for message in messages['/effort_command']:
-        order = _in_order(message.name, joints, '/effort_command')
-        commands[_sample(message.header.stamp, period, '/effort_command')] = np.asarray(message.effort)[order]
+    for n, message in _by_sample(path, '/effort_command', messages['/effort_command'], period).items():
+        commands[n] = np.asarray(message.effort)[_in_order(message.name, joints, '/effort_command')]
     return BagEpisode(episode, status, joints, times, fields['positions'], fields['velocities'],
                       fields['accelerations'], fields['effort'], states, commands)
 

@@ -1,13 +1,20 @@
-"""Episodes recorded as rosbag2 bags and scored from the bag alone; broken bags refused by name (FAULTS.md 17-19)."""
+"""Episodes recorded as rosbag2 bags and scored from the bag alone; broken, duplicated or foreign evidence and
+failed writes refused by name (FAULTS.md 17-19, 25)."""
 
+import errno
 import json
 import os
+import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+import yaml
 from rosbags.rosbag2 import Reader, Writer
 
-from ddarm_tuner.bags import (TYPESTORE, BagError, EpisodeBagWriter, checked_output_path, child_path,
+from ddarm_tuner.bags import (PUBLISHERS_KEY, SAMPLED_TOPICS, STORAGES, TOPICS, TYPESTORE, BagError,
+                              EpisodeBagWriter, bag_status, checked_output_path, child_path, deserialize,
                               read_episode_bag, score_bag)
 from ddarm_tuner.cli import main
 from ddarm_tuner.episodes import EpisodeSpec, run_episode
@@ -73,24 +80,34 @@ def test_ddarm_episode_ros_bag_records_what_it_prints(tmp_path, capsys):
     assert episode['command'].startswith('ddarm episode --controller pd_gravity')
 
 
-def copy_bag(source, target, keep=lambda topic: True, transform=None):
-    """A copy of a bag with some topics dropped or some messages changed."""
-    with Reader(source) as reader, Writer(target, version=9) as writer:
+def custom_data(bag) -> dict:
+    return yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']['custom_data'] or {}
+
+
+def copy_bag(source, target, keep=lambda topic: True, transform=None, storage='sqlite3', qos=None, custom=None,
+             extra=()):
+    """A copy of a bag with some topics dropped, some messages changed or added (`extra`: (topic, timestamp,
+    CDR)), some topics' offered QoS (`qos`) or custom data entries (`custom`) replaced."""
+    qos, custom = qos or {}, custom or {}
+    with Reader(source) as reader, Writer(target, version=9, storage_plugin=STORAGES[storage]) as writer:
         connections = {}
         for connection in reader.connections:
             if keep(connection.topic):
-                connections[connection.id] = writer.add_connection(connection.topic, connection.msgtype,
-                                                                   typestore=TYPESTORE)
+                connections[connection.id] = writer.add_connection(
+                    connection.topic, connection.msgtype, typestore=TYPESTORE,
+                    offered_qos_profiles=qos.get(connection.topic, connection.ext.offered_qos_profiles))
         for connection, timestamp, raw in reader.messages():
             if connection.id not in connections:
                 continue
             if transform is not None:
-                from ddarm_tuner.bags import deserialize
-
                 message = transform(connection.topic, deserialize(raw, connection.msgtype))
                 raw = TYPESTORE.serialize_cdr(message, connection.msgtype)
             writer.write(connections[connection.id], timestamp, raw)
-        writer.set_custom_data('ddarm.status', 'complete')
+        by_topic = {connection.topic: connection for connection in connections.values()}
+        for topic, timestamp, raw in extra:
+            writer.write(by_topic[topic], timestamp, raw)
+        for key, value in {**custom_data(source), **custom}.items():
+            writer.set_custom_data(key, value)
     return target
 
 
@@ -182,3 +199,235 @@ def test_separate_processes_record_a_scorable_bag(tmp_path):
     spec = SPECS['pd_gravity']
     result = run_graph_episode(spec, bag=tmp_path / 'bag', storage='sqlite3')
     assert score_bag(tmp_path / 'bag')['I'] == pytest.approx(result.indices['I'], rel=1e-12)
+
+
+
+EPISODE = {'spec': SPECS['computed_torque'].to_dict(), 'joints': ['joint1', 'joint2', 'joint3']}
+
+
+# Duplicated or foreign evidence (FAULTS.md 25) ------------------------------------------------------------------
+
+def offered_qos(bag, topic):
+    with Reader(bag) as reader:
+        return next(connection.ext.offered_qos_profiles for connection in reader.connections
+                    if connection.topic == topic)
+
+
+def recorded_at(bag, topic, timestamp):
+    """The message the bag recorded on `topic` at `timestamp` (ns)."""
+    with Reader(bag) as reader:
+        wanted = [connection for connection in reader.connections if connection.topic == topic]
+        return next(deserialize(raw, TOPICS[topic]) for _, stamp, raw in reader.messages(connections=wanted)
+                    if stamp == timestamp)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_a_faithful_copy_scores_as_the_original(good_bag, tmp_path, storage):
+    # Two publishers on /diagnostics do not matter: the indices do not depend on it.
+    publishers = {**{topic: ['/plant'] for topic in SAMPLED_TOPICS}, '/diagnostics': ['/plant', '/aggregator']}
+    bag = copy_bag(good_bag, tmp_path / 'copy', storage=storage,
+                   qos={'/diagnostics': offered_qos(good_bag, '/diagnostics') * 2},
+                   custom={PUBLISHERS_KEY: json.dumps(publishers)})
+    assert score_bag(bag) == {**score_bag(good_bag), 'bag': str(bag)}
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('topic, refused', [
+    ('/joint_states', r'/joint_states holds more than one message for samples \[5\]'),
+    ('/effort_command', r'/effort_command holds more than one message for samples \[5\]'),
+    ('/clock', r'/clock holds more than one message at t = \[0\.05\] s'),
+])
+def test_two_messages_for_one_sample_are_refused(good_bag, tmp_path, storage, topic, refused):
+    message = recorded_at(good_bag, topic, 50_000_000)  # sample 5
+    if topic != '/clock':  # a second source, with its own idea of sample 5
+        message.effort = np.asarray(message.effort) + 1.0
+    bag = copy_bag(good_bag, tmp_path / 'twice', storage=storage,
+                   extra=[(topic, 50_000_000, TYPESTORE.serialize_cdr(message, TOPICS[topic]))])
+    with pytest.raises(BagError, match=refused):
+        score_bag(bag)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+@pytest.mark.parametrize('topic', SAMPLED_TOPICS)
+def test_a_sampled_topic_offered_by_two_publishers_is_refused(good_bag, tmp_path, storage, topic):
+    bag = copy_bag(good_bag, tmp_path / 'two', storage=storage, qos={topic: offered_qos(good_bag, topic) * 2})
+    with pytest.raises(BagError, match=f'{topic} was recorded from 2 publishers'):
+        score_bag(bag)
+
+
+@pytest.mark.parametrize('topic', SAMPLED_TOPICS)
+def test_a_sampled_topic_published_by_two_nodes_is_refused(good_bag, tmp_path, topic):
+    publishers = {name: ['/plant'] for name in SAMPLED_TOPICS}
+    publishers[topic] = ['/plant', '/impostor/plant']
+    bag = copy_bag(good_bag, tmp_path / 'two', custom={PUBLISHERS_KEY: json.dumps(publishers)})
+    with pytest.raises(BagError, match=f'{topic} had 2 publishers \\(/plant, /impostor/plant\\)'):
+        score_bag(bag)
+
+
+def test_unreadable_publishers_are_refused(good_bag, tmp_path):
+    bag = copy_bag(good_bag, tmp_path / 'garbled', custom={PUBLISHERS_KEY: '{"/clock": "/plant"}'})
+    with pytest.raises(BagError, match=f'custom_data {PUBLISHERS_KEY} is not a JSON object of node-name lists'):
+        score_bag(bag)
+
+
+def test_a_topic_on_two_connections_is_refused(good_bag, tmp_path):
+    bag = copy_bag(good_bag, tmp_path / 'copy')
+    twice = tmp_path / 'twice'
+    with Reader(bag) as reader, Writer(twice, version=9) as writer:
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=TYPESTORE,
+                                                   offered_qos_profiles=c.ext.offered_qos_profiles)
+                       for c in reader.connections}
+        # Another offer on the same topic: rosbag2 records it as a second connection.
+        other = writer.add_connection('/joint_states', TOPICS['/joint_states'], typestore=TYPESTORE)
+        for connection, timestamp, raw in reader.messages():
+            writer.write(connections[connection.id], timestamp, raw)
+        timestamp = 20_000_000_000
+        writer.write(other, timestamp, TYPESTORE.serialize_cdr(recorded_at(bag, '/joint_states', 50_000_000),
+                                                               TOPICS['/joint_states']))
+        for key, value in custom_data(bag).items():
+            writer.set_custom_data(key, value)
+    with pytest.raises(BagError, match='/joint_states is recorded on 2 connections'):
+        score_bag(twice)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_the_publishers_heard_are_recorded(tmp_path, storage):
+    publishers = {'/joint_states': ['/plant'], '/reference': ['/ddarm_episode_driver'], '/diagnostics': []}
+    with EpisodeBagWriter(tmp_path / 'bag', EPISODE, storage) as bag:
+        bag.set_publishers({'/clock': ['/someone']})
+        bag.set_publishers(publishers)  # replaces
+        bag.close(complete=True)
+    assert json.loads(custom_data(tmp_path / 'bag')[PUBLISHERS_KEY]) == publishers
+
+
+@pytest.mark.parametrize('publishers, refused', [
+    ({'/joint_state': ['/plant']}, r"publishers for \['/joint_state'\], which are not topics"),
+    ({'/joint_states': '/plant'}, 'the publishers of /joint_states must be a list of fully qualified node names'),
+    ({'/joint_states': ['plant']}, 'the publishers of /joint_states must be a list of fully qualified node names'),
+])
+def test_publishers_must_be_named_fully(tmp_path, publishers, refused):
+    with EpisodeBagWriter(tmp_path / 'bag', EPISODE) as bag:
+        with pytest.raises(BagError, match=refused):
+            bag.set_publishers(publishers)
+
+
+# Write failures: named, never a traceback, never a complete bag -------------------------------------------------
+
+FILE_SIZE_LIMITED = r'''
+import json, resource, signal, sys
+import numpy as np
+from ddarm_tuner.bags import TYPESTORE, BagError, EpisodeBagWriter
+
+path, storage, limit, count = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+types = TYPESTORE.types
+state = types['sensor_msgs/msg/JointState'](
+    header=types['std_msgs/msg/Header'](stamp=types['builtin_interfaces/msg/Time'](sec=0, nanosec=0), frame_id=''),
+    name=['joint1', 'joint2', 'joint3'], position=np.zeros(3), velocity=np.zeros(3), effort=np.zeros(3))
+cdr = TYPESTORE.serialize_cdr(state, 'sensor_msgs/msg/JointState')
+# Past the limit a write fails with EFBIG (File too large) instead of the process being killed.
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+stage, bag, report = 'open', None, {}
+try:
+    bag = EpisodeBagWriter(path, json.loads(sys.argv[5]), storage)
+    stage = 'write'
+    for n in range(count):
+        bag.write('/joint_states', n * 10_000_000, cdr)
+    stage = 'close'
+    bag.close(complete=True)
+    stage = 'none'
+except BagError as error:
+    report['error'] = str(error)
+    if bag is not None:
+        try:
+            bag.close(complete=True)
+        except BagError as again:
+            report['close_again'] = str(again)
+print(json.dumps({'stage': stage, **report}))
+'''
+
+
+@pytest.mark.parametrize('storage, limit, count, stage, reason', [
+    # MCAP buffers a chunk (1 MiB) in memory: a short recording fails when it is flushed, at close.
+    ('mcap', 0, 10, 'close', 'File too large'),
+    ('mcap', 100_000, 20_000, 'write', 'File too large'),
+    # sqlite reports EFBIG as an I/O error without the OS's reason.
+    ('sqlite3', 0, 10, 'open', r'disk I/O error \(SQLITE_IOERR_WRITE\)'),
+    ('sqlite3', 100_000, 20_000, 'write', r'disk I/O error \(SQLITE_IOERR_WRITE\)'),
+])
+def test_a_bag_that_outgrows_the_file_size_limit_is_named_and_never_complete(tmp_path, storage, limit, count,
+                                                                              stage, reason):
+    path = tmp_path / 'bag'
+    done = subprocess.run([sys.executable, '-c', FILE_SIZE_LIMITED, str(path), storage, str(limit), str(count),
+                           json.dumps(EPISODE)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr  # a BagError, not a traceback
+    report = json.loads(done.stdout.splitlines()[-1])
+    assert report['stage'] == stage
+    assert report['error'].startswith(f'{path}: cannot write the bag: ')
+    assert re.search(reason, report['error'])
+    if stage != 'open':  # close(complete=True) after the failure does not pretend
+        assert report['close_again'] == report['error']
+    assert not (path / 'metadata.yaml').exists()
+    with pytest.raises(BagError, match='no metadata.yaml'):
+        score_bag(path)
+
+
+class FullDisk:
+    """A storage file on a disk with no space left: every write fails as the OS fails it."""
+
+    def __init__(self, file):
+        self.file = file
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __getattr__(self, name):
+        return getattr(self.file, name)
+
+
+def fill_disk(bag: EpisodeBagWriter) -> None:
+    bag.writer.storage.bio = FullDisk(bag.writer.storage.bio)  # rosbags' MCAP storage writes through .bio
+
+
+def test_no_space_left_at_close_is_named_and_the_bag_never_complete(tmp_path):
+    bag = EpisodeBagWriter(tmp_path / 'bag', EPISODE)
+    fill_disk(bag)
+    with pytest.raises(BagError) as failure:
+        bag.close(complete=True)
+    assert str(failure.value) == f'{tmp_path / "bag"}: cannot write the bag: No space left on device'
+    with pytest.raises(BagError, match='No space left on device'):
+        bag.write('/clock', 0, b'')
+    bag.close(complete=False)  # what a context manager does next: nothing left to do
+    with pytest.raises(BagError, match='no metadata.yaml'):
+        score_bag(tmp_path / 'bag')
+
+
+def test_the_error_that_ended_a_recording_stays_the_one_raised(tmp_path):
+    with pytest.raises(RuntimeError, match='the plant died') as raised:
+        with EpisodeBagWriter(tmp_path / 'bag', EPISODE) as bag:
+            fill_disk(bag)
+            raise RuntimeError('the plant died')
+    assert raised.value.__notes__ == [f'{tmp_path / "bag"}: cannot write the bag: No space left on device']
+    assert not (tmp_path / 'bag' / 'metadata.yaml').exists()
+
+
+def test_a_closed_bag_takes_nothing_more_and_cannot_become_complete(tmp_path):
+    bag = EpisodeBagWriter(tmp_path / 'bag', EPISODE, 'sqlite3')
+    with pytest.raises(BagError, match=r'/nowhere is not a topic of an episode bag'):
+        bag.write('/nowhere', 0, b'')
+    bag.close(complete=False)
+    bag.close(complete=False)
+    with pytest.raises(BagError, match='already closed and marked incomplete; it cannot become complete'):
+        bag.close(complete=True)
+    with pytest.raises(BagError, match=r'closed \(marked incomplete\); cannot record /clock'):
+        bag.write('/clock', 0, b'')
+    assert bag_status(tmp_path / 'bag') == 'incomplete'
+
+
+def test_a_writer_dropped_unclosed_still_leaves_a_bag_marked_incomplete(tmp_path):
+    """A signal can land between a writer's opening and the `with` that would close it."""
+    spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3)
+    EpisodeBagWriter(tmp_path / 'bag', {'spec': spec.to_dict(), 'joints': ['joint1', 'joint2', 'joint3']})
+    assert bag_status(tmp_path / 'bag') == 'incomplete'
+    with pytest.raises(BagError, match='marked incomplete'):
+        score_bag(tmp_path / 'bag')
