@@ -22,8 +22,8 @@ from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, 
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, Reference, descriptor, joint_state_msg,
-                                     proposed_values, read_joint_state, read_reference, run_node,
-                                     undeclared_overrides)
+                                     proposed_values, read_joint_state, read_reference,
+                                     refuse_undeclared_parameters, run_node, undeclared_overrides)
 from ddarm_sim.samples import MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
@@ -70,11 +70,13 @@ class ControllerNode(Node):
         if unknown:
             raise GainError(f'unknown parameters {unknown} (not {law} parameters: a typo?)')
         self.period = values['period']
+        self.max_sample_gap = values['max_sample_gap']
         self.reference: Reference | None = None
         gains = effective_gains(law, values, self.model, None) or (np.ones(self.model.dof),) * 2
         self.controller = SampledController(
             make_law(law, self.model, *gains, *self._friction(values)), checked_delay(values['compute_delay_steps']))
         self.gains_ready = values['omega'] == 0 or law == 'computed_torque'
+        refuse_undeclared_parameters(self, law)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -104,6 +106,8 @@ class ControllerNode(Node):
             ('compute_delay_steps', 1, descriptor('compute delay d in samples', integer=(0, MAX_DELAY))),
             ('period', 0.01, descriptor('sampling period Δ in s (to read sample indices from stamps)',
                                         floating=(1e-4, 1.0))),
+            ('max_sample_gap', 100, descriptor('states more than this many samples ahead of the expected one '
+                                               'are refused', integer=(1, 1_000_000))),
             ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque), N m s/rad")),
             ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque), N m")),
         ]
@@ -136,6 +140,7 @@ class ControllerNode(Node):
     def _apply_parameters(self, changes) -> None:
         values = proposed_values(self, ())
         self.period = values['period']
+        self.max_sample_gap = values['max_sample_gap']
         self._set_gains(values)
         self.controller.law = make_law(self.law_name, self.model, self.controller.law.kp, self.controller.law.kv,
                                        *self._friction(values))
@@ -191,6 +196,13 @@ class ControllerNode(Node):
         except MessageError as error:
             self.refused_messages += 1
             self.get_logger().error(f'refused, no command sent: {error}')
+            return
+        expected = 0 if self.last_sample is None else self.last_sample + 1
+        if state.n > expected + self.max_sample_gap:
+            # Accepting it would make every real state that follows look like one from the past.
+            self.refused_messages += 1
+            self.get_logger().error(f'refused a state for sample {state.n}: more than max_sample_gap = '
+                                    f'{self.max_sample_gap} samples after the expected sample {expected}')
             return
         if state.n == 0:
             self.controller.reset()

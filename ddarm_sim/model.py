@@ -50,12 +50,20 @@ class Arm:
         spatial inertia, which is how the plant is made to differ from the model.
         """
         path = Path(urdf_path) if urdf_path is not None else default_urdf_path()
-        if not path.is_file():
+        if path.is_dir():
+            raise ModelError(f'URDF {path} is a directory, not a URDF file')
+        if not path.exists():
             raise ModelError(f'URDF {path} does not exist')
+        try:
+            # Pinocchio reports a file it cannot open as one without a valid model: ask the OS first.
+            with path.open('rb'):
+                pass
+        except OSError as error:
+            raise ModelError(f'URDF {path} cannot be read: {error.strerror}') from error
         try:
             model = pin.buildModelFromUrdf(str(path))
         except (RuntimeError, ValueError) as error:
-            raise ModelError(f'URDF {path} could not be read: {error}') from error
+            raise ModelError(f'URDF {path} is not a URDF the arm can be built from: {error}') from error
         if model.nq != model.nv:
             raise ModelError(f'URDF {path}: only revolute/prismatic joints are supported '
                              f'(nq={model.nq}, nv={model.nv})')

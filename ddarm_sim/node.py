@@ -21,7 +21,7 @@ from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, distu
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, proposed_values, read_joint_state,
-                                     run_node, time_msg, undeclared_overrides)
+                                     refuse_undeclared_parameters, run_node, time_msg, undeclared_overrides)
 from ddarm_sim.samples import MessageError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 
@@ -102,6 +102,7 @@ class PlantNode(Node):
         self.arm = Arm.from_urdf(self.get_parameter('urdf').value or None)
         self.joints = self.arm.joint_names
         self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        refuse_undeclared_parameters(self, 'plant')
         self.add_on_set_parameters_callback(self._check_parameters)
 
         self.state_publisher = self.create_publisher(
@@ -123,7 +124,7 @@ class PlantNode(Node):
         self.latest_command: np.ndarray | None = None
         self.latest_command_sample = -1
         self.deadline = 0.0
-        self.counters = {'refused_commands': 0, 'stale_commands': 0, 'deadline_misses': 0}
+        self.counters = {'refused_commands': 0, 'stale_commands': 0, 'duplicate_commands': 0, 'deadline_misses': 0}
         self.tick_times: list[float] = []
         self.began = 0.0
         unknown = undeclared_overrides(self)
@@ -233,13 +234,20 @@ class PlantNode(Node):
         if self.realtime_timer is not None:
             self.destroy_timer(self.realtime_timer)
             self.realtime_timer = None
-        log = self.get_logger().info if level == DiagnosticStatus.OK else self.get_logger().error
-        log(message)
+        # One call site per severity: rclpy refuses a call site that logs at another severity than before.
+        if level == DiagnosticStatus.OK:
+            self.get_logger().info(message)
+        else:
+            self.get_logger().error(message)
         self._report(level, event, message)
 
     def _report(self, level: bytes, event: str, message: str) -> None:
-        """A DiagnosticArray on /diagnostics; `event` (started, complete, diverged, timeout, no_start) is for programs."""
+        """A DiagnosticArray on /diagnostics; `event` (started, complete, diverged, timeout, no_start) is for programs.
+
+        `node` is this plant's fully qualified name: /diagnostics is shared by every node of the graph.
+        """
         values = {'event': event, 'sample': self.plant.sample if self.plant else 0, 'mode': self.settings.mode,
+                  'node': self.get_fully_qualified_name(),
                   'wall_time_s': time.monotonic() - self.began if self.phase != STARTING else 0.0, **self.counters}
         if len(self.tick_times) > 1:
             jitter = np.abs(np.diff(self.tick_times) - self.settings.period) * 1e3
@@ -276,7 +284,13 @@ class PlantNode(Node):
             return
         if command.n > expected:
             self.counters['refused_commands'] += 1
-            self.get_logger().error(f'refused a command for sample {command.n} from the future (now at {expected})')
+            self.get_logger().error(f'refused a command for sample {command.n} from the future '
+                                    f'(expected sample {expected})')
+            return
+        if command.n == self.latest_command_sample:
+            # Real time only (lockstep has stepped past it): another controller answers the same states.
+            self.counters['duplicate_commands'] += 1
+            self.get_logger().warning(f'ignored a second command for sample {command.n}: the first one stands')
             return
         self.latest_command, self.latest_command_sample = command.effort, command.n
         if self.settings.mode == 'lockstep':

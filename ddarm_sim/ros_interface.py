@@ -7,14 +7,17 @@ number reaches the core.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
+from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ddarm_sim.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
 from ddarm_sim.samples import MessageError, joint_order, sample_at
 
 JOINT_STATES_TOPIC = 'joint_states'
@@ -178,23 +181,57 @@ def descriptor(description: str, *, floating: tuple[float, float] | None = None,
 
 def undeclared_overrides(node) -> list[str]:
     """Parameters given to the node (YAML or -p) that it never declared: most likely typos."""
-    declared = set(node._parameters)
+    # rclpy has no public view of the overrides a node was given.
     return sorted(name for name in node._parameter_overrides
-                  if name not in declared and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
+                  if not node.has_parameter(name) and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
+
+
+def refuse_undeclared_parameters(node, what: str) -> None:
+    """Make the node refuse to set undeclared parameters with a reason that names them.
+
+    rclpy (7.1) refuses them with "undeclared parameter(s): []": its check consumes the
+    generator of names before it lists them. A pre-set callback runs before that check, so
+    both the parameter services and a local set_parameters give this reason instead.
+    `what` names the node's kind for the hint ("not a plant parameter").
+    """
+    def check(parameters: list) -> list:
+        unknown = sorted({parameter.name for parameter in parameters if not node.has_parameter(parameter.name)})
+        if unknown:
+            kind = f'a {what} parameter' if len(unknown) == 1 else f'{what} parameters'
+            raise ParameterNotDeclaredException(f'{unknown} (not {kind}: a typo?)')
+        return parameters
+
+    node.add_pre_set_parameters_callback(check)
 
 
 def proposed_values(node, changes) -> dict:
     """The node's parameter values as they would be after `changes` (for cross-parameter checks)."""
-    values = {name: parameter.value for name, parameter in node._parameters.items()}
+    values = {name: parameter.value for name, parameter in node.get_parameters_by_prefix('').items()}
     values.update({parameter.name: parameter.value for parameter in changes})
     return values
+
+
+def parameter_file_refusal(parameter_files: dict, name: str) -> ParameterFileError | None:
+    """Why a node named `name` got none of its parameter files' values, if it did not."""
+    import rclpy
+
+    # A bare node under the same remapping rules tells the name the refused one would have had.
+    stand_in = rclpy.create_node(name, enable_rosout=False)
+    try:
+        refuse_unconfigured(parameter_files, stand_in.get_fully_qualified_name())
+    except ParameterFileError as error:
+        return error
+    finally:
+        stand_in.destroy_node()
+    return None
 
 
 def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
     """A node's whole life as an executable: 0 after a normal end (Ctrl-C, SIGTERM, shutdown), 2 if refused.
 
-    `make_node` builds the node after rclpy.init; an exception in `refusals` while it does (a bad
-    parameter file, say) is printed as the reason the node refused to start.
+    `make_node` builds the node named `name` after rclpy.init; an exception in `refusals` while it
+    does (a bad parameter file, say) is printed as the reason the node refused to start, as is a
+    parameter file that rcl cannot parse or that configures no node of this name.
     """
     import rclpy
     from rclpy.exceptions import ParameterException
@@ -203,14 +240,28 @@ def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
     from ddarm_sim.lifetime import follow_parent
 
     follow_parent()
-    rclpy.init(args=args)
+    try:
+        # Read before rcl does, so that a file it cannot parse is refused in our words, naming it.
+        parameter_files = read_parameter_files(sys.argv if args is None else args)
+    except ParameterFileError as error:
+        print(f'{name}: refused to start: {error}', flush=True)
+        return 2
+    try:
+        rclpy.init(args=args)
+    except RuntimeError as error:  # rclpy's errors of rcl (unknown arguments, a file it cannot parse)
+        print(f'{name}: refused to start: rcl refused the arguments: {error}', flush=True)
+        return 2
     node = None
     try:
         node = make_node()
+        refuse_unconfigured(parameter_files, node.get_fully_qualified_name())
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (*refusals, ParameterException) as error:
+    except (*refusals, ParameterException, ParameterFileError) as error:
+        if node is None and parameter_files:
+            # Refused on defaults (a controller without gains, say): a file for another node is the cause.
+            error = parameter_file_refusal(parameter_files, name) or error
         print(f'{name}: refused to start: {error}', flush=True)
         return 2
     finally:

@@ -16,12 +16,13 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ddarm_control.laws import ComputedTorqueLaw, Measurement, ReferencePoint
 from ddarm_control.node import ControllerNode
 from ddarm_sim.model import Arm
-from ddarm_sim.node import ENDED, PlantNode
+from ddarm_sim.node import ENDED, RUNNING, PlantNode
 from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg,
                                      reference_msg)
 from ddarm_tuner.episodes import EpisodeSpec, plan_episode
@@ -30,6 +31,7 @@ from graph_helpers import overrides
 
 JOINTS = ['joint1', 'joint2', 'joint3']
 ROOT = Path(__file__).resolve().parent.parent
+FAR_FUTURE = 2**31 - 1  # s: the largest stamp a builtin_interfaces/Time holds
 
 
 class Probe:
@@ -119,6 +121,34 @@ def test_controller_sends_nothing_for_bad_states_and_recovers(controller):
     assert node.refused_messages == len(bad_states(plan)) + 1
 
 
+def test_a_state_from_the_far_future_is_refused_and_the_next_real_one_commanded(controller, capfd):
+    node, probe, plan = controller
+    probe.state_publisher.publish(good_state(plan, 0))
+    probe.spin_until(lambda: len(probe.commands) == 1)
+    far = good_state(plan, 1)
+    far.header.stamp.sec, far.header.stamp.nanosec = FAR_FUTURE, 0
+    probe.state_publisher.publish(far)
+    probe.spin_until(lambda: node.refused_messages == 1)
+    assert node.last_sample == 0
+    assert ('refused a state for sample 214748364700: more than max_sample_gap = 100 samples after the '
+            'expected sample 1') in capfd.readouterr().err
+    probe.state_publisher.publish(good_state(plan, 1))
+    probe.spin_until(lambda: len(probe.commands) == 2)
+    assert probe.commands[1].header.stamp.sec == 0 and probe.commands[1].header.stamp.nanosec == 10_000_000
+    np.testing.assert_allclose(probe.commands[1].effort, expected_command(plan, 1), rtol=1e-12)
+    # Refused beyond max_sample_gap past the expected sample: with 5, after sample 1 the bound is 2 + 5 = 7.
+    assert node.set_parameters([Parameter('max_sample_gap', value=5)])[0].successful
+    assert not node.set_parameters([Parameter('max_sample_gap', value=0)])[0].successful
+    probe.state_publisher.publish(good_state(plan, 8))
+    probe.spin_until(lambda: node.refused_messages == 2)
+    probe.state_publisher.publish(good_state(plan, 7))
+    probe.spin_until(lambda: len(probe.commands) == 3)
+    assert probe.commands[2].header.stamp.nanosec == 70_000_000 and node.last_sample == 7
+    probe.state_publisher.publish(good_state(plan, 13))
+    probe.spin_until(lambda: len(probe.commands) == 4)
+    assert node.refused_messages == 2
+
+
 def test_a_reference_for_another_robot_is_refused(controller):
     node, probe, plan = controller
     before = node.reference
@@ -177,6 +207,20 @@ def test_plant_refuses_bad_commands_and_never_integrates_them(plant):
     np.testing.assert_array_equal(probe.states[1].effort, [-50.0, 20.0, 100.0])
     probe.command_publisher.publish(command(0, [1.0, 1.0, 1.0]))  # sample 0 again: stale
     probe.spin_until(lambda: node.counters['stale_commands'] == 1)
+    assert node.plant.sample == 1 and node.counters['duplicate_commands'] == 0
+
+
+def test_plant_refuses_a_command_from_the_far_future_and_applies_the_next_real_one(plant, capfd):
+    node, probe = plant
+    far = command(0, [9.0, 9.0, 9.0])
+    far.header.stamp.sec = FAR_FUTURE
+    probe.command_publisher.publish(far)
+    probe.spin_until(lambda: node.counters['refused_commands'] == 1)
+    assert node.phase == RUNNING and node.plant.sample == 0 and len(probe.states) == 1
+    assert 'refused a command for sample 214748364700 from the future (expected sample 0)' in capfd.readouterr().err
+    probe.command_publisher.publish(command(0, [1.0, 2.0, 3.0]))
+    probe.spin_until(lambda: len(probe.states) == 2)
+    np.testing.assert_array_equal(probe.states[1].effort, [1.0, 2.0, 3.0])
     assert node.plant.sample == 1
 
 
@@ -225,6 +269,7 @@ def test_an_incompatible_qos_peer_is_detected(plant):
      '    kv: [1.0, 1.0, 1.0]\n', 'kp needs 3'),
     ('ddarm_sim.node', None, 'plant:\n  ros__parameters:\n    perod: 0.01\n', "unknown parameters ['perod']"),
     ('ddarm_sim.node', None, 'plant:\n  ros__parameters:\n    substeps: 0\n', 'substeps'),
+    ('ddarm_sim.node', None, 'plant:\n  ros__parameters:\n    urdf: /\n', 'URDF / is a directory, not a URDF file'),
 ])
 def test_bad_parameter_files_are_refused_at_start(tmp_path, module, law, yaml_text, problem):
     parameters = tmp_path / 'parameters.yaml'
@@ -233,6 +278,40 @@ def test_bad_parameter_files_are_refused_at_start(tmp_path, module, law, yaml_te
                            str(parameters)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert problem in done.stdout + done.stderr
+
+
+@pytest.mark.parametrize('module, law, arguments, key, node', [
+    ('ddarm_sim.node', None, [], 'plnat', '/plant'),
+    ('ddarm_control.node', 'computed_torque', [], 'computed_torqe', '/computed_torque'),
+    # rcl reads a key without a leading slash as absolute: `plant` is not /arm/plant.
+    ('ddarm_sim.node', None, ['-r', '__ns:=/arm'], 'plant', '/arm/plant'),
+])
+def test_a_parameter_file_for_no_such_node_is_refused_at_start(tmp_path, module, law, arguments, key, node):
+    parameters = tmp_path / 'misspelled.yaml'
+    parameters.write_text(f'{key}:\n  ros__parameters:\n    period: 0.01\n')
+    done = subprocess.run([sys.executable, '-m', module, *([law] if law else []), '--ros-args', *arguments,
+                           '--params-file', str(parameters)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert f'refused to start: {parameters} configures no node named {node} (its node keys: {key})' in done.stdout
+
+
+@pytest.mark.parametrize('yaml_text', [None, '/**:\n  ros__parameters:\n    autostart: false\n'])
+def test_a_parameter_file_that_configures_the_plant_starts_it(ros_context, tmp_path, yaml_text):
+    parameters = ROOT / 'config' / 'plant.yaml'
+    if yaml_text is not None:
+        parameters = tmp_path / 'every_node.yaml'
+        parameters.write_text(yaml_text)
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '--params-file',
+                                str(parameters)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node = rclpy.create_node('start_probe', context=ros_context)
+    try:
+        assert node.create_client(Trigger, '/plant/reset').wait_for_service(timeout_sec=30)
+        assert process.poll() is None
+    finally:
+        node.destroy_node()
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=20)
+    assert process.returncode == 0, output
 
 
 @pytest.mark.parametrize('law', ['pd_gravity', 'computed_torque'])

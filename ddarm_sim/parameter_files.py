@@ -1,0 +1,120 @@
+"""Parameter files given to a node process (`--ros-args --params-file FILE`) that must configure that node.
+
+rcl applies a file's parameters only to the nodes its keys name and ignores the rest without
+a word, so a misspelled node key (`plnat:`) would start the node on its defaults. This module
+reads the files named in a process's arguments and refuses any that names no key matching
+the node, with the rules rcl uses to match keys:
+
+- nested keys are namespaces: `/ns: {plant: {ros__parameters: ...}}` names `/ns/plant`;
+- a key without a leading slash is absolute: `plant` is `/plant`, never `/ns/plant`;
+- a `*` token stands for exactly one name, a `**` token for any number of them (none too):
+  `/**` configures every node, `/*/plant` a `plant` one namespace deep, `/**/plant` every `plant`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+
+import yaml
+
+ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
+PARAMETERS_KEY = 'ros__parameters'
+# rcl flags that take the next argument as their value (which is then not a flag of its own).
+_FLAGS_WITH_VALUE = {'-r', '--remap', '-p', '--param', PARAMS_FILE, '-e', '--enclave', '--log-level',
+                     '--log-config-file', '--log-file-name'}
+
+
+class ParameterFileError(ValueError):
+    """A parameter file that cannot configure the node; the text names the file."""
+
+
+def parameter_file_paths(arguments: Sequence[str]) -> list[str]:
+    """The `--params-file` paths of every `--ros-args` block (each ends at `--`), in order."""
+    paths = []
+    in_ros_args = False
+    arguments = list(arguments)
+    index = 0
+    while index < len(arguments):
+        argument = arguments[index]
+        if not in_ros_args:
+            in_ros_args = argument == ROS_ARGS
+        elif argument == END_OF_ROS_ARGS:
+            in_ros_args = False
+        elif argument in _FLAGS_WITH_VALUE:
+            if argument == PARAMS_FILE and index + 1 < len(arguments):
+                paths.append(arguments[index + 1])
+            index += 1
+        index += 1
+    return paths
+
+
+def _join(namespace: str, key: str) -> str:
+    return key if not namespace else namespace + ('' if namespace.endswith('/') else '/') + key
+
+
+def _node_keys(mapping: dict, namespace: str = '') -> list[str]:
+    keys = []
+    for key, value in mapping.items():
+        if key == PARAMETERS_KEY:
+            if namespace:
+                keys.append(namespace)
+        elif isinstance(value, dict):
+            keys.extend(_node_keys(value, _join(namespace, str(key))))
+    return keys
+
+
+def node_keys(path: str) -> list[str]:
+    """The node names (as written, namespaces joined) whose `ros__parameters` the file holds."""
+    try:
+        with open(path, encoding='utf-8') as stream:
+            document = yaml.safe_load(stream)
+    except (OSError, UnicodeDecodeError) as error:
+        raise ParameterFileError(f'parameter file {path} cannot be read: {error}') from error
+    except yaml.YAMLError as error:
+        flat = ' '.join(str(error).split())
+        raise ParameterFileError(f'parameter file {path} is not valid YAML: {flat}') from error
+    if not isinstance(document, dict):
+        raise ParameterFileError(f'parameter file {path} is not a mapping of node names to {PARAMETERS_KEY} '
+                                 f"(it holds {'nothing' if document is None else type(document).__name__})")
+    keys = _node_keys(document)
+    if not keys:
+        raise ParameterFileError(f'parameter file {path} configures no node: no {PARAMETERS_KEY} under a node '
+                                 f'name (its keys: {", ".join(str(key) for key in document) or "none"})')
+    return keys
+
+
+def node_key_pattern(key: str) -> re.Pattern:
+    """The fully qualified node names that a (possibly nested, possibly wildcard) node key configures."""
+    absolute = key if key.startswith('/') else '/' + key
+    parts = []
+    for token in absolute.split('/')[1:]:
+        if token == '**':
+            parts.append(r'(?:/\w+)*')
+        elif token == '*':
+            parts.append(r'/\w+')
+        else:
+            parts.append('/' + re.escape(token))
+    return re.compile(''.join(parts), re.ASCII)
+
+
+def configures(key: str, fully_qualified_name: str) -> bool:
+    return node_key_pattern(key).fullmatch(fully_qualified_name) is not None
+
+
+def read_parameter_files(arguments: Sequence[str]) -> dict[str, list[str]]:
+    """Each `--params-file` of the arguments with its node keys; refuses a file that configures no node."""
+    return {path: node_keys(path) for path in parameter_file_paths(arguments)}
+
+
+def refuse_unconfigured(files: dict[str, list[str]], fully_qualified_name: str) -> None:
+    """Refuse, naming it, the first file none of whose node keys configures `fully_qualified_name`."""
+    for path, keys in files.items():
+        if not any(configures(key, fully_qualified_name) for key in keys):
+            raise ParameterFileError(f'{path} configures no node named {fully_qualified_name} '
+                                     f'(its node keys: {", ".join(keys)})')
+
+
+def check_parameter_files(arguments: Sequence[str], fully_qualified_name: str) -> None:
+    """Refuse any parameter file of the process arguments that does not configure this node."""
+    refuse_unconfigured(read_parameter_files(arguments), fully_qualified_name)
