@@ -10,8 +10,8 @@ import numpy as np
 from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
 from ddarm_control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_gains, make_law)
-from ddarm_sim.model import Arm
-from ddarm_sim.plant import DEFAULT_SUBSTEPS, Plant, PlantOptions, disturbed_initial_state
+from ddarm_sim.model import Arm, ModelError
+from ddarm_sim.plant import DEFAULT_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
 from ddarm_sim.trajectory import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
                                   sample_count, sample_times)
 from ddarm_tuner.indices import index_3_2
@@ -180,6 +180,22 @@ def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
     if final_position is None:
         raise EpisodeError('the PD + gravity ω rule needs the final position q_f')
     return omega_rule_pd_gravity(np.diag(model.mass_matrix(final_position)), omega)
+
+
+def check_episode(spec: EpisodeSpec) -> EpisodePlan:
+    """Plan `spec` and check everything a run would refuse (gains, per-joint options), before any work starts."""
+    plan = plan_episode(spec)
+    dof = load_arm(spec.urdf).dof
+    try:
+        checked_gains(spec.kp, spec.kv, dof)
+        PlantOptions(period=spec.period, substeps=spec.substeps, torque_limit=plan.torque_limit,
+                     viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
+                     external_torque=spec.external_torque).checked(dof)
+        if spec.mass_scale is not None:
+            load_arm(spec.urdf, spec.mass_scale)
+    except (GainError, PlantError, ModelError) as error:
+        raise EpisodeError(str(error)) from error
+    return plan
 
 
 def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> EpisodeResult:

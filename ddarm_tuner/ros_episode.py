@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,17 +30,37 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ddarm_control.laws import CONTROLLERS
+from ddarm_sim.lifetime import child_environment
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, read_joint_state, reference_msg)
 from ddarm_sim.samples import MessageError
-from ddarm_tuner.bags import EpisodeBagWriter
-from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, load_arm, plan_episode, score
+from ddarm_tuner.bags import EpisodeBagWriter, checked_output_path
+from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, check_episode, load_arm, score
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
 # The plant starts an episode once this many nodes listen to it: the controller and the driver.
 GRAPH_SUBSCRIBERS = 2
+# Wall seconds to wait for the plant and the controller to be on the graph, alone, before an episode.
+PEER_TIMEOUT = 20.0
+# How often the graph is checked while an episode runs, and how long a node may be missing from
+# it before the episode fails (discovery can lag a little; a foreign publisher fails at once).
+GRAPH_CHECK_PERIOD = 0.5
+PEER_LOSS_GRACE = 1.0
+# A plant that owes the next state (its command was heard) and sends nothing for this long has
+# stalled or died; DDS itself notices a killed process only after its 20 s lease.
+PLANT_STALL_TIMEOUT = 5.0
+# Waiting on the controller, the plant reports its own command timeout; nothing at all for this
+# long means that report is lost too.
+STALL_TIMEOUT = COMMAND_TIMEOUT + 5.0
+# Plant counters that make a lockstep episode, or a real-time one, a failed episode: a command the
+# plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
+# The profile each recorded topic's publisher declares (ddarm_sim.ros_interface).
+TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: SAMPLE_QOS,
+             '/' + REFERENCE_TOPIC: REFERENCE_QOS, CLOCK_TOPIC: CLOCK_QOS, DIAGNOSTICS_TOPIC: DIAGNOSTICS_QOS}
+FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicate_commands'),
+                    'realtime': ('refused_commands', 'duplicate_commands')}
 
 
 class GraphEpisodeError(RuntimeError):
@@ -85,12 +107,14 @@ class Recording:
     """What the driver heard during one episode: states (with applied effort) and commands, by sample."""
 
     k_max: int
+    controller: str
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
     diverged_at: int | None = None
     last_state_heard: bool = False
     plant_report: dict | None = None  # the plant's end-of-episode diagnostics (complete or diverged)
     error: str | None = None
+    last_heard: float = field(default_factory=time.monotonic)  # wall time of the last state or command
 
     @property
     def ended(self) -> bool:
@@ -104,35 +128,187 @@ class Recording:
         last = self.k_max if self.diverged_at is None else self.diverged_at - 1
         return self.last_state_heard and self.plant_report is not None and len(self.commands) >= last + 1
 
+    def fail(self, message: str) -> None:
+        """Keep the first problem: it is the cause, later ones its consequences."""
+        if self.error is None:
+            self.error = message
+
+    def owed_by_plant(self) -> bool:
+        """The command for the latest state has come: the next message must be the plant's."""
+        return bool(self.states) and max(self.states) in self.commands
+
+    def heard(self) -> str:
+        """What came, for a message that says why an episode did not end."""
+        last = max(self.states) if self.states else None
+        return (f'heard states up to sample {last}, {len(self.commands)} of {self.k_max + 1} commands, '
+                f"{'a' if self.plant_report else 'no'} plant report")
+
 
 def _stamp_ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def fully_qualified(name: str, namespace: str) -> str:
+    return f"{namespace.rstrip('/')}/{name}"
+
+
+def session_namespace() -> str:
+    """A namespace no other graph on this machine or network uses.
+
+    A namespace per session is how ROS runs several robots on one domain: every topic and
+    service of the session is its own, and the domain (which the user chose) stays as it is.
+    """
+    return f'/ddarm_{os.getpid()}_{secrets.token_hex(4)}'
+
+
+def namespace_arguments(namespace: str) -> list[str]:
+    """--ros-args rules that put a node, its relative topics and the absolute /clock and /diagnostics in `namespace`."""
+    if not namespace or namespace == '/':
+        return []
+    return ['-r', f'__ns:={namespace}', '-r', f'{CLOCK_TOPIC}:={namespace}{CLOCK_TOPIC}',
+            '-r', f'{DIAGNOSTICS_TOPIC}:={namespace}{DIAGNOSTICS_TOPIC}']
+
+
+def qos_description(profile) -> dict:
+    """An rclpy QoS profile as the bag's offered_qos_profiles entry."""
+    return {'reliability': profile.reliability.name.lower(), 'durability': profile.durability.name.lower(),
+            'history': profile.history.name.lower(), 'depth': int(profile.depth)}
+
+
 class GraphDriver(Node):
     """Runs episodes on a running plant and controller node, one at a time, and records them.
 
-    With a bag writer, every message it publishes or hears during the episode goes into the bag
-    as the CDR that crossed DDS, timestamped with its simulated time.
+    Before and while an episode runs it checks the graph: the plant and the controller must be
+    there once each, and the only publishers of the episode's topics; two messages for one sample,
+    or a plant that refused or dropped a command, fail the episode. With a bag writer, every
+    message it publishes or hears during the episode goes into the bag as the CDR that crossed
+    DDS, timestamped with its simulated time.
     """
 
-    def __init__(self, name: str = 'ddarm_episode_driver', plant_node: str = 'plant', **kwargs) -> None:
-        super().__init__(name, **kwargs)
+    def __init__(self, name: str = 'ddarm_episode_driver', plant_node: str = 'plant', namespace: str = '',
+                 **kwargs) -> None:
+        rules = namespace_arguments(namespace)[2:]  # the node's own namespace is set directly
+        super().__init__(name, namespace=namespace or None, cli_args=['--ros-args', *rules] if rules else None,
+                         **kwargs)
         self.plant_node = plant_node
         self.joints = load_arm(None).joint_names
         self.recording: Recording | None = None
         self.bag: EpisodeBagWriter | None = None
         self.period = 0.01
         self.reference_publisher = self.create_publisher(JointTrajectory, REFERENCE_TOPIC, REFERENCE_QOS)
-        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS)
-        self.create_subscription(JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS)
-        self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DIAGNOSTICS_QOS)
-        self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS)
+        self.subscriptions_by_topic = {
+            '/' + JOINT_STATES_TOPIC: self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_state,
+                                                               SAMPLE_QOS),
+            '/' + EFFORT_COMMAND_TOPIC: self.create_subscription(JointState, EFFORT_COMMAND_TOPIC,
+                                                                 self._on_command, SAMPLE_QOS),
+            DIAGNOSTICS_TOPIC: self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics,
+                                                        DIAGNOSTICS_QOS),
+            CLOCK_TOPIC: self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS),
+        }
         self.parameter_clients = {plant_node: AsyncParameterClient(self, plant_node)}
-        self.reset_clients = {plant_node: self.create_client(Trigger, f'/{plant_node}/reset')}
+        self.reset_clients = {plant_node: self.create_client(Trigger, f'{plant_node}/reset')}
         for law in CONTROLLERS:
             self.parameter_clients[law] = AsyncParameterClient(self, law)
-            self.reset_clients[law] = self.create_client(Trigger, f'/{law}/reset')
+            self.reset_clients[law] = self.create_client(Trigger, f'{law}/reset')
+        self._next_graph_check = 0.0
+        self._peer_missing_since: float | None = None
+
+    def node_name(self, name: str) -> str:
+        """The fully qualified name of a node `name` in this driver's namespace."""
+        return fully_qualified(name, self.get_namespace())
+
+    # The graph -------------------------------------------------------------------------------
+
+    def topic_owners(self, law: str) -> dict[str, tuple[str, str]]:
+        """Bag topic -> (resolved topic, the one node that may publish it) for an episode of `law`."""
+        owners = {'/' + JOINT_STATES_TOPIC: self.plant_node, '/' + EFFORT_COMMAND_TOPIC: law,
+                  CLOCK_TOPIC: self.plant_node, DIAGNOSTICS_TOPIC: self.plant_node}
+        topics = {topic: (self.subscriptions_by_topic[topic].topic_name, self.node_name(owner))
+                  for topic, owner in owners.items()}
+        topics['/' + REFERENCE_TOPIC] = (self.reference_publisher.topic_name, self.get_fully_qualified_name())
+        return topics
+
+    def publishers(self, law: str) -> dict[str, list[str]]:
+        """Bag topic -> the fully qualified names of the nodes publishing it now."""
+        return {topic: [fully_qualified(info.node_name, info.node_namespace)
+                        for info in self.get_publishers_info_by_topic(resolved)]
+                for topic, (resolved, _) in self.topic_owners(law).items()}
+
+    def graph_problems(self, law: str) -> tuple[list[str], list[str]]:
+        """(foreign, missing): what is on the graph that must not be, and who is not there yet."""
+        names = Counter(fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces())
+        foreign, missing = [], []
+        for node, role in ((self.node_name(self.plant_node), 'plant'), (self.node_name(law), 'controller')):
+            if names[node] == 0:
+                missing.append(f'no {role} node {node} on the graph')
+            elif names[node] > 1:
+                foreign.append(f'{names[node]} nodes are named {node}: a second {role} on this domain')
+        me = self.get_fully_qualified_name()
+        if names[me] > 1:
+            foreign.append(f'{names[me]} nodes are named {me}: a second driver on this domain')
+        for other in CONTROLLERS:
+            if other != law and names[self.node_name(other)]:
+                foreign.append(f'{self.node_name(other)} is running too: two laws would answer the same states')
+        heard = self.publishers(law)
+        for topic, (resolved, owner) in self.topic_owners(law).items():
+            others = [node for node in heard[topic] if node != owner]
+            if topic == DIAGNOSTICS_TOPIC:
+                continue  # many nodes publish diagnostics; only the plant's own status is read
+            if others or len(heard[topic]) > 1:
+                foreign.append(f'{resolved} is published by {sorted(heard[topic])}; only {owner} may publish it '
+                               f'(foreign: {sorted(set(others))})')
+            elif not heard[topic]:
+                missing.append(f'nobody publishes {resolved} (expected {owner})')
+        return foreign, missing
+
+    def wait_for_peers(self, executor, law: str, timeout: float = PEER_TIMEOUT, alive=lambda: None) -> None:
+        """Until the plant and the `law` controller are on the graph, alone; names what is wrong if they never are."""
+        deadline = time.monotonic() + timeout
+        while True:
+            foreign, missing = self.graph_problems(law)
+            if not foreign and not missing:
+                return
+            if time.monotonic() > deadline:
+                raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
+            if not self.context.ok():
+                raise ExternalShutdownException('shut down while waiting for the plant and controller')
+            alive()
+            executor.spin_once(timeout_sec=0.05)
+
+    def _watch_graph(self, law: str) -> None:
+        """While an episode runs: a foreign publisher or duplicate node fails it at once, a lost peer after a grace."""
+        now = time.monotonic()
+        if now < self._next_graph_check:
+            return
+        self._next_graph_check = now + GRAPH_CHECK_PERIOD
+        foreign, missing = self.graph_problems(law)
+        if foreign:
+            raise GraphEpisodeError('foreign nodes on the episode\'s graph: ' + '; '.join(foreign))
+        if not missing:
+            self._peer_missing_since = None
+        elif self._peer_missing_since is None:
+            self._peer_missing_since = now
+        elif now - self._peer_missing_since > PEER_LOSS_GRACE:
+            raise GraphEpisodeError('a node left the graph during the episode (did it die?): ' + '; '.join(missing))
+
+    def open_bag(self, path: Path | str, episode: dict, storage: str = 'mcap', law: str | None = None
+                 ) -> EpisodeBagWriter:
+        """A bag for the next episode, with the QoS each topic's publishers offer (call once the graph is checked).
+
+        DDS discovery does not carry history and depth, so the graph cannot tell them: the profiles
+        are the ones ddarm's nodes declare, one per publisher the graph shows (the check allows one).
+        """
+        law = law or episode['spec']['controller']
+        heard = self.bag_publishers(law)
+        offered = {topic: [qos_description(TOPIC_QOS[topic])] * len(heard[topic]) for topic in heard}
+        return EpisodeBagWriter(path, episode, storage, offered_qos=offered)
+
+    def bag_publishers(self, law: str) -> dict[str, list[str]]:
+        """The publishers of what the bag records: of /diagnostics only the plant's status is recorded."""
+        heard = self.publishers(law)
+        plant = self.node_name(self.plant_node)
+        heard[DIAGNOSTICS_TOPIC] = [node for node in heard[DIAGNOSTICS_TOPIC] if node == plant]
+        return heard
 
     # What the graph says --------------------------------------------------------------------
 
@@ -149,9 +325,20 @@ class GraphDriver(Node):
         try:
             sample = read_joint_state(msg, self.joints, self.period, need_state=False)
         except MessageError as error:
-            self.get_logger().error(f'unusable joint state: {error}')
+            self.recording.fail(f'unusable joint state on {self.subscriptions_by_topic["/joint_states"].topic_name}'
+                                f': {error}')
+            return
+        if sample.n > self.recording.k_max + 1:
+            # Not a sample of this episode (the controllers refuse such stamps too): kept out of the bag.
+            self.get_logger().warning(f'ignored a joint state for sample {sample.n}, beyond the episode\'s last '
+                                      f'sample {self.recording.k_max + 1}')
             return
         self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
+        if sample.n in self.recording.states:
+            self.recording.fail(f'two joint states for sample {sample.n}: a second publisher on '
+                                f'{self.subscriptions_by_topic["/joint_states"].topic_name}?')
+            return
+        self.recording.last_heard = time.monotonic()
         if sample.q is None:  # the plant diverged during the period before this stamp
             self.recording.diverged_at = sample.n
             self.recording.last_state_heard = True
@@ -166,36 +353,67 @@ class GraphDriver(Node):
             sample = read_joint_state(msg, self.joints, self.period, 'command', need_state=False,
                                       need_effort=True)
         except MessageError as error:
-            self.get_logger().error(f'unusable command: {error}')
+            self.recording.fail(f'unusable command: {error}')
             return
         if sample.n > self.recording.k_max:
-            return  # the answer to the final state: never applied, not part of the episode
+            return  # the answer to the final state, or beyond it: never applied, not part of the episode
         self._record('/' + EFFORT_COMMAND_TOPIC, msg.header.stamp, msg)
+        if sample.n in self.recording.commands:
+            self.recording.fail(f'two commands for sample {sample.n}: a second publisher on '
+                                f'{self.subscriptions_by_topic["/effort_command"].topic_name}?')
+            return
+        self.recording.last_heard = time.monotonic()
         self.recording.commands[sample.n] = sample.effort
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         if self.recording is None:
             return
+        plant = self.node_name(self.plant_node)
+        ours = [status for status in msg.status if status.name == 'ddarm/plant'
+                and {pair.key: pair.value for pair in status.values}.get('node', plant) == plant]
+        if not ours:
+            return  # another node's diagnostics: not part of this episode
         self._record(DIAGNOSTICS_TOPIC, msg.header.stamp, msg)
-        for status in msg.status:
-            if status.name != 'ddarm/plant':
-                continue
+        for status in ours:
             values = {pair.key: pair.value for pair in status.values}
-            if values.get('event') in ('timeout', 'no_start'):
-                self.recording.error = status.message
+            if values.get('event') == 'timeout':
+                self.recording.fail(f'{plant}: {status.message}; {self._controller_note()}')
+            elif values.get('event') == 'no_start':
+                self.recording.fail(f'{plant}: {status.message}')
             elif values.get('event') in ('complete', 'diverged'):
                 self.recording.plant_report = values
+
+    def _controller_note(self) -> str:
+        """Who kept the plant waiting: the controller, and whether it is still on the graph."""
+        controller = self.node_name(self.recording.controller)
+        last = max(self.recording.commands) if self.recording.commands else None
+        present = controller in {fully_qualified(name, namespace)
+                                 for name, namespace in self.get_node_names_and_namespaces()}
+        return (f"the controller {controller} sent {'no command' if last is None else f'nothing after sample {last}'}"
+                f" ({'still on the graph: stuck or refusing states?' if present else 'gone from the graph'})")
+
+    def _stalled(self, mode: str) -> str | None:
+        """Why an episode under way stopped moving, naming the node that owes a message; None while it moves."""
+        waited = time.monotonic() - self.recording.last_heard
+        plant = self.node_name(self.plant_node)
+        if (mode == 'realtime' or self.recording.owed_by_plant()) and waited > max(PLANT_STALL_TIMEOUT,
+                                                                                     5 * self.period):
+            return f'the plant {plant} published nothing for {waited:.1f} s ({self.recording.heard()}): did it die?'
+        if waited > STALL_TIMEOUT:
+            return f'nothing heard for {waited:.1f} s ({self.recording.heard()}); {self._controller_note()}'
+        return None
 
     # Driving --------------------------------------------------------------------------------
 
     def _spin_until(self, executor, done, deadline: float, what: str, alive) -> None:
         while True:
-            if not self.context.ok():  # SIGINT/SIGTERM: rclpy's handler shut the context down
+            if not self.context.ok():  # rclpy's signal handler shut the context down
                 raise ExternalShutdownException(f'shut down while waiting for {what}')
             if done():
                 return
             if time.monotonic() > deadline:
-                raise GraphEpisodeError(f'timed out waiting for {what}')
+                heard = f' ({self.recording.heard()})' if self.recording is not None else ''
+                raise GraphEpisodeError(f'timed out waiting for {what}{heard}')
             alive()
             executor.spin_once(timeout_sec=0.05)
 
@@ -208,49 +426,73 @@ class GraphDriver(Node):
 
     def _configure(self, executor, node: str, parameters: list[Parameter], deadline: float, alive) -> None:
         client = self.parameter_clients[node]
-        self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of /{node}', alive)
+        self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
+                         alive)
         future = client.set_parameters(parameters)
-        self._spin_until(executor, future.done, deadline, f'/{node} to take its parameters', alive)
+        self._spin_until(executor, future.done, deadline, f'{self.node_name(node)} to take its parameters', alive)
         refused = [f'{parameter.name}: {result.reason}'
                    for parameter, result in zip(parameters, future.result().results) if not result.successful]
         if refused:
-            raise GraphEpisodeError(f'/{node} refused parameters: {refused}')
+            raise GraphEpisodeError(f'{self.node_name(node)} refused parameters: {refused}')
 
     def run_episode(self, executor, spec: EpisodeSpec, plan: EpisodePlan | None = None,
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
-                    alive=lambda: None) -> EpisodeResult:
-        """Configure, start, record and score one episode; `alive` raises if a node process has died."""
-        plan = plan if plan is not None else plan_episode(spec)
+                    alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> EpisodeResult:
+        """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died."""
+        plan = plan if plan is not None else check_episode(spec)
+        self.wait_for_peers(executor, spec.controller, peer_timeout, alive)
         deadline = time.monotonic() + timeout
+
+        def watching() -> None:
+            alive()
+            self._watch_graph(spec.controller)
+            if self.recording is not None and self.recording.error is None:
+                stalled = self._stalled(mode)
+                if stalled:
+                    self.recording.fail(stalled)
+
         parameters = node_parameters(spec, plan, mode)
         self._configure(executor, self.plant_node,
                         _service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL), deadline,
-                        alive)
+                        watching)
         self._configure(executor, spec.controller,
                         _service_parameters(parameters[spec.controller]['ros__parameters'],
-                                            CONTROLLER_OPTIONAL), deadline, alive)
+                                            CONTROLLER_OPTIONAL), deadline, watching)
         self.period, self.bag = spec.period, bag
-        self.recording = Recording(plan.k_max)
+        self._peer_missing_since = None
         try:
             reference = reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref, plan.a_ref, plan.nominal)
             self.reference_publisher.publish(reference)
-            self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
             expected = {'ready': True, 'kp': list(spec.kp), 'kv': list(spec.kv), 'delay': spec.delay,
                         'reference_samples': plan.k_max + 1, 'reference_final': plan.q_ref[-1].tolist()}
             while True:  # until the controller holds this episode's reference and gains
-                state = json.loads(self._reset(executor, spec.controller, deadline, alive).message)
+                state = json.loads(self._reset(executor, spec.controller, deadline, watching).message)
                 if all(state[key] == value for key, value in expected.items()):
                     break
                 executor.spin_once(timeout_sec=0.01)
-            reply = self._reset(executor, self.plant_node, deadline, alive)
+            self.recording = Recording(plan.k_max, spec.controller)
+            self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
+            reply = self._reset(executor, self.plant_node, deadline, watching)
             if not reply.success:
                 raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
-            self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', alive)
+            self.recording.last_heard = time.monotonic()
+            self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', watching)
             if self.recording.error:
                 raise GraphEpisodeError(self.recording.error)
+            counted = {name: int(self.recording.plant_report.get(name, 0)) for name in FAILING_COUNTERS[mode]}
+            if any(counted.values()):
+                raise GraphEpisodeError(f'{self.node_name(self.plant_node)} counted {counted} during the episode: '
+                                        'commands it refused, missed or got twice (a foreign publisher?)')
+            self._watch_graph_now(spec.controller)
+            if bag is not None:
+                bag.set_publishers(self.bag_publishers(spec.controller))
             return result_from_recording(spec, plan, self.recording)
         finally:
             self.recording, self.bag = None, None
+
+    def _watch_graph_now(self, law: str) -> None:
+        self._next_graph_check = 0.0
+        self._watch_graph(law)
 
 
 def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> EpisodeResult:
@@ -270,6 +512,25 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
     return result
 
 
+def realtime_warnings(plant_report: dict | None) -> list[str]:
+    """What made a real-time episode differ from its lockstep twin: ticks that held an older command, late ticks.
+
+    Such an episode's numbers are true of what ran on the wall clock, not of the sampled loop
+    the indices describe; the command says so beside them.
+    """
+    if not plant_report:
+        return []
+    warnings = []
+    stale, misses = int(plant_report.get('stale_commands', 0)), int(plant_report.get('deadline_misses', 0))
+    if stale:
+        warnings.append(f'{stale} tick(s) applied an older command (the current one was late): the loop was not '
+                        'the sampled loop with a one-period compute delay')
+    if misses:
+        warnings.append(f"{misses} deadline miss(es) (a tick over 1.5 periods after the one before; period jitter "
+                        f"max {float(plant_report.get('period_jitter_max_ms', 'nan')):.3g} ms)")
+    return warnings
+
+
 def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
     """The configuration a bag carries, so that the bag alone says what was run."""
     return {'spec': spec.to_dict(), 'joints': load_arm(spec.urdf).joint_names, 'k_max': plan.k_max,
@@ -281,8 +542,11 @@ def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command
 class GraphSession:
     """The plant and a controller as separate processes over DDS, with a driver in this process.
 
-    The node processes live as long as the session, so episodes cost no start-up; switching
-    controller stops the other law's process, because two laws would answer the same states.
+    The session's nodes live in a namespace of their own (`session_namespace`), so two sessions,
+    or a session and a user's graph, on one domain never hear each other. The node processes live
+    as long as the session, so episodes cost no start-up, and no longer: they end when it closes
+    and, should this process be killed, with it (`ddarm_sim.lifetime`). Switching controller
+    stops the other law's process, because two laws would answer the same states.
     """
 
     def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
@@ -290,25 +554,32 @@ class GraphSession:
         self.folder = Path(folder if folder is not None else self._temporary.name)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.timeout = timeout
+        self.namespace = session_namespace()
         self.processes: dict[str, subprocess.Popen] = {}
         self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.driver = GraphDriver(context=self.context)
+        rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
+        self.driver = GraphDriver(namespace=self.namespace, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.driver)
-        self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
-                                                   'command_timeout': COMMAND_TIMEOUT})
+        try:
+            self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
+                                                       'command_timeout': COMMAND_TIMEOUT})
+        except BaseException:
+            self.close()
+            raise
 
     def _start(self, name: str, module: list[str], parameters: dict) -> None:
         path = self.folder / f'{name}.parameters.yaml'
-        path.write_text(yaml.safe_dump({name: {'ros__parameters': parameters}}))
-        log = open(self.folder / f'{name}.log', 'w')
-        self.processes[name] = subprocess.Popen(
-            [sys.executable, '-m', *module, '--ros-args', '--params-file', str(path)],
-            stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
-        log.close()
+        path.write_text(yaml.safe_dump({fully_qualified(name, self.namespace): {'ros__parameters': parameters}}))
+        with open(self.folder / f'{name}.log', 'w') as log:
+            # A session of its own: a Ctrl-C in the terminal reaches this process, which stops its nodes in order.
+            self.processes[name] = subprocess.Popen(
+                [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
+                 '--params-file', str(path)],
+                stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
 
-    def _use_controller(self, law: str, spec: EpisodeSpec) -> None:
+    def use_controller(self, law: str, spec: EpisodeSpec) -> None:
+        """Start the `law` controller process (stopping the other law's) unless it runs already."""
         for other in CONTROLLERS:
             if other != law and other in self.processes:
                 self._stop(other)
@@ -319,11 +590,23 @@ class GraphSession:
         for name, process in self.processes.items():
             if process.poll() is not None:
                 tail = (self.folder / f'{name}.log').read_text()[-2000:]
-                raise GraphEpisodeError(f'the {name} node exited with code {process.returncode}:\n{tail}')
+                raise GraphEpisodeError(f'the {name} node ({fully_qualified(name, self.namespace)}) exited with '
+                                        f'code {process.returncode}:\n{tail}')
+
+    def ready(self, spec: EpisodeSpec) -> None:
+        """The `spec` law's controller running and both nodes on the graph, alone."""
+        self.use_controller(spec.controller, spec)
+        self.driver.wait_for_peers(self.executor, spec.controller, alive=self.check_alive)
+
+    def open_bag(self, path: Path | str, spec: EpisodeSpec, plan: EpisodePlan, transport: str, storage: str,
+                 command: str | None) -> EpisodeBagWriter:
+        """A bag for the next episode of `spec`, once its nodes are up (the bag records what they offer)."""
+        self.ready(spec)
+        return self.driver.open_bag(path, episode_record(spec, plan, transport, command), storage)
 
     def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
             realtime: bool = False) -> EpisodeResult:
-        self._use_controller(spec.controller, spec)
+        self.use_controller(spec.controller, spec)
         return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
                                        self.timeout, alive=self.check_alive)
 
@@ -362,9 +645,8 @@ def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storag
     """
     from ddarm_tuner.bags import score_bag
 
-    plan = plan_episode(spec)
-    writer = EpisodeBagWriter(bag, episode_record(spec, plan, 'ros-lockstep', command), storage)
-    with writer:
+    plan = check_episode(spec)
+    with session.open_bag(bag, spec, plan, 'ros-lockstep', storage, command) as writer:
         result = session.run(spec, plan, writer)
         writer.close(complete=True)
     return result, score_bag(bag)
@@ -378,16 +660,14 @@ def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float 
     With `bag`, the episode is also recorded there; the bag is closed (and marked complete or
     incomplete) whatever happens, so a killed or failed run never passes for a good one.
     """
-    plan = plan_episode(spec)
+    plan = check_episode(spec)
+    if bag is not None:
+        checked_output_path(bag)  # refused before any node starts
     transport = 'ros-realtime' if realtime else 'ros-lockstep'
-    writer = None if bag is None else EpisodeBagWriter(bag, episode_record(spec, plan, transport, command),
-                                                       storage)
-    complete = False
-    try:
-        with GraphSession(timeout=timeout) as session:
+    with GraphSession(timeout=timeout) as session:
+        if bag is None:
+            return session.run(spec, plan, realtime=realtime)
+        with session.open_bag(bag, spec, plan, transport, storage, command) as writer:
             result = session.run(spec, plan, writer, realtime)
-        complete = True
-    finally:
-        if writer is not None:
-            writer.close(complete)
-    return result
+            writer.close(complete=True)
+        return result
