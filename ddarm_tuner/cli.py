@@ -17,6 +17,7 @@ from ddarm_sim.plant import DEFAULT_SUBSTEPS, PlantError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 from ddarm_tuner.bench import add_bench_parser
 from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
+from ddarm_tuner.interrupts import Interrupted, stop_on_signals
 
 
 def _finite(text: str) -> float:
@@ -62,6 +63,8 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
         kp = kv = (1.0,) * len(paper_trajectory(args.trajectory, args.duration).q0)
     elif args.omega is not None:
+        if args.kv is not None:
+            raise EpisodeError('--kv goes with --kp; --omega sets both gains from the ω rule')
         final = paper_trajectory(args.trajectory, args.duration).qf
         kp, kv = gains_from_omega(args.controller, args.omega, final_position=final)
     else:
@@ -93,24 +96,32 @@ def print_summary(summary: dict) -> None:
     if summary['max_abs_error_deg'] is not None:
         print(f"  max |e| (deg) = {_format_vector(summary['max_abs_error_deg'])}   "
               f"max |P| (N m) = {_format_vector(summary['max_abs_torque'])}")
+    for warning in summary.get('warnings', []):
+        print(f'  WARNING: {warning}')
 
 
 def command_episode(args: argparse.Namespace) -> int:
-    spec = episode_spec(args)
-    started = time.perf_counter()
+    from ddarm_tuner.episodes import check_episode
+
     if args.bag and not (args.ros or args.realtime):
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
+    spec = episode_spec(args)
+    check_episode(spec)
+    started = time.perf_counter()
+    warnings = []
     if args.ros or args.realtime:
-        from ddarm_tuner.ros_episode import run_graph_episode  # ROS only when asked for
+        from ddarm_tuner.ros_episode import realtime_warnings, run_graph_episode  # ROS only when asked for
 
         result = run_graph_episode(spec, realtime=args.realtime, bag=args.bag, storage=args.storage,
                                    command=shlex.join(['ddarm', *args.argv]))
         transport = 'ros-realtime' if args.realtime else 'ros-lockstep'
+        if args.realtime:
+            warnings = realtime_warnings(result.plant_report)
     else:
         result = run_episode(spec)
         transport = 'in-process'
     summary = {**result.summary(), 'transport': transport, 'wall_time_s': time.perf_counter() - started,
-               'command': shlex.join(['ddarm', *args.argv])}
+               'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}
     if args.json:
         print(json.dumps(summary))
     else:
@@ -135,6 +146,16 @@ def command_score(args: argparse.Namespace) -> int:
             print(bag)
             print_summary(summary)
     return 2 if failures else 0
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse an existing --out, or a --run folder that exists, before any search or episode."""
+    from ddarm_tuner.bags import checked_output_path, child_path
+
+    if args.out:
+        checked_output_path(args.out)
+    if args.run:
+        child_path(args.runs, args.run)
 
 
 def _run_folder(args: argparse.Namespace, kind: str):
@@ -162,6 +183,9 @@ def command_omega(args: argparse.Namespace) -> int:
 
     if args.mass_error is not None and args.mass_scale is not None:
         raise EpisodeError('give --mass-error or --mass-scale, not both')
+    if args.disturbance is not None and args.external_torque is not None:
+        raise EpisodeError('give --disturbance or --external-torque, not both')
+    _check_outputs(args)
     spec = episode_spec(args)
     if args.mass_error is not None:
         spec = dataclasses.replace(spec, mass_scale=tuple(1.0 + e for e in args.mass_error))
@@ -169,7 +193,11 @@ def command_omega(args: argparse.Namespace) -> int:
         spec = dataclasses.replace(spec, external_torque=tuple(args.disturbance))
     choice = omega_procedure(spec, np.radians(args.max_error), args.torque_factor, args.omega_step,
                              args.omega_max)
-    run = _run_folder(args, 'omega')
+    with _run_folder(args, 'omega') as run:
+        return _report_omega(args, spec, choice, run)
+
+
+def _report_omega(args: argparse.Namespace, spec: EpisodeSpec, choice, run) -> int:
     steps = [dataclasses.asdict(step) for step in choice.steps]
     report = {'omega_min': choice.omega_min,
               'steady_state_error_at_omega_min_deg': np.degrees(choice.steady_state_error_at_min).tolist(),
@@ -204,9 +232,9 @@ def command_omega(args: argparse.Namespace) -> int:
 
 
 def command_tune(args: argparse.Namespace) -> int:
-    from ddarm_tuner.ros_episode import GraphSession, record_and_score
-    from ddarm_tuner.tune import INDEX_KEYS, tune, with_gains
+    from ddarm_tuner.tune import INDEX_KEYS, tune
 
+    _check_outputs(args)
     template = episode_spec(args)
     key = INDEX_KEYS[args.index]
     progress = None if args.json else sys.stderr
@@ -214,7 +242,16 @@ def command_tune(args: argparse.Namespace) -> int:
         print(f'searching ({args.method}, budget {args.budget} episodes, starts ω = {args.omegas}) …',
               file=progress, flush=True)
     tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed)
-    run = _run_folder(args, 'tune')  # only now: a refused search leaves nothing behind
+    with _run_folder(args, 'tune') as run:  # only now: a refused search leaves nothing behind
+        return _check_tuning(args, template, tuning, run, progress)
+
+
+def _check_tuning(args: argparse.Namespace, template: EpisodeSpec, tuning, run, progress) -> int:
+    """The tuned gains run once through the ROS graph, recorded and scored from the bag; the YAML only if they agree."""
+    from ddarm_tuner.ros_episode import GraphSession, record_and_score
+    from ddarm_tuner.tune import INDEX_KEYS, with_gains
+
+    key = INDEX_KEYS[args.index]
     best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
     if progress:
         print(f'best {key} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
@@ -235,9 +272,12 @@ def command_tune(args: argparse.Namespace) -> int:
         'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
         'spec': best_spec.to_dict(), 'command': run.summary['command'],
     }
-    report['gains_files'] = _write_gains(
-        run, args, tuning.search.kp, tuning.search.kv, best_spec,
-        f"{key} = {scored[key]!r} (scored from {scored['bag']})\nfrom: {report['command']}")
+    if report['agree']:  # gains whose evidence disagrees with the search are not handed to a robot
+        report['gains_files'] = _write_gains(
+            run, args, tuning.search.kp, tuning.search.kv, best_spec,
+            f"{key} = {scored[key]!r} (scored from {scored['bag']})\nfrom: {report['command']}")
+    else:
+        report['gains_files'] = []
     run.summary['tune'] = report
     run.finish('complete' if report['agree'] else 'in-process and bag indices disagree')
     report['run'] = str(run.path)
@@ -253,7 +293,10 @@ def command_tune(args: argparse.Namespace) -> int:
             print(f"  {label}: I1 = {values['I1']:.9g}  I2 = {values['I2']:.9g}  I = {values['I']:.9g}")
         print(f"  largest relative difference {difference:.2e} ({'agree' if report['agree'] else 'DISAGREE'}); "
               f"bag {scored['bag']}")
-        print(f"  gains written to {', '.join(report['gains_files'])}")
+        if report['gains_files']:
+            print(f"  gains written to {', '.join(report['gains_files'])}")
+        else:
+            print('  no gains written: the bag does not confirm the search')
     return 0 if report['agree'] else 2
 
 
@@ -262,25 +305,29 @@ def command_reproduce(args: argparse.Namespace) -> int:
     from ddarm_tuner.experiments import Budget, Reproduction
     from ddarm_tuner.report import write_report
     from ddarm_tuner.ros_episode import GraphSession
+    from ddarm_tuner.runs import RunFolder
 
     out = checked_output_path(args.out)
-    out.mkdir(parents=True)
     started = time.perf_counter()
+    command = shlex.join(['ddarm', *args.argv])
 
     def progress(message: str) -> None:
         print(f'[{time.perf_counter() - started:6.1f} s] {message}', file=sys.stderr, flush=True)
 
-    reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(),
-                                shlex.join(['ddarm', *args.argv]), progress)
-    gains = reproduction.search_all()
-    progress('running every reported episode through the ROS graph (lockstep), recording each')
-    with GraphSession(out / 'nodes') as session:
-        reproduction.run_episodes(session, gains)
-    reproduction.judge_claims()
-    results = reproduction.results
-    results['wall_time_s'] = time.perf_counter() - started
-    (out / 'results.json').write_text(json.dumps(results, indent=2))
-    written = write_report(out, results)
+    # The folder's summary.json says `running` until the report is written: an interrupted or
+    # killed reproduction is never taken for a finished one.
+    with RunFolder(out.name, out.parent, command=command) as run:
+        reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress)
+        gains = reproduction.search_all()
+        progress('running every reported episode through the ROS graph (lockstep), recording each')
+        with GraphSession(out / 'nodes') as session:
+            reproduction.run_episodes(session, gains)
+        reproduction.judge_claims()
+        results = reproduction.results
+        results['wall_time_s'] = time.perf_counter() - started
+        (out / 'results.json').write_text(json.dumps(results, indent=2))
+        written = write_report(out, results)
+        run.finish('complete', report=str(out / 'REPORT.md'))
     progress(f'done: {out / "REPORT.md"} ({len(written)} files), results in {out / "results.json"}')
     for claim in results['claims']:
         print(f"{'REPRODUCED    ' if claim['reproduced'] else 'NOT REPRODUCED'}  {claim['claim']}: "
@@ -298,6 +345,12 @@ def command_controller(args: argparse.Namespace) -> int:
     from ddarm_control.node import main as controller_main
 
     return controller_main(['ddarm-controller', *args.ros_arguments], args.law)
+
+
+def command_tuner(args: argparse.Namespace) -> int:
+    from ddarm_tuner.node import main as tuner_main
+
+    return tuner_main(['ddarm-tuner', *args.ros_arguments])
 
 
 def add_output_arguments(parser: argparse.ArgumentParser) -> None:
@@ -364,6 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
     controller.add_argument('law', choices=CONTROLLERS)
     controller.set_defaults(handler=command_controller, takes_ros_arguments=True)
+    tuner = commands.add_parser('tuner', help='start the tuner node: a recorded sweep on running nodes '
+                                             '(then --ros-args ...)')
+    tuner.set_defaults(handler=command_tuner, takes_ros_arguments=True)
     add_bench_parser(commands)
     return parser
 
@@ -375,8 +431,15 @@ def main(argv: list[str] | None = None) -> int:
     if ros_arguments and not getattr(args, 'takes_ros_arguments', False):
         parser.error(f'unrecognized arguments: {" ".join(ros_arguments)}')
     args.ros_arguments, args.argv = ros_arguments, argv
+    if getattr(args, 'takes_ros_arguments', False):
+        return args.handler(args)  # a node: it handles SIGINT and SIGTERM as ROS nodes do
     try:
-        return args.handler(args)
+        with stop_on_signals():
+            return args.handler(args)
+    except Interrupted as stop:
+        print(f'ddarm {args.command}: {stop}; stopped cleanly (bags under way marked incomplete)',
+              file=sys.stderr, flush=True)
+        return stop.exit_code
     except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError, OSError) as error:
         print(f'ddarm {args.command}: {error}', file=sys.stderr)
         return 2

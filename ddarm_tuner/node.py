@@ -5,17 +5,22 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
 import rclpy
 import yaml
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.ros_interface import descriptor, proposed_values, undeclared_overrides
-from ddarm_tuner.bags import BagError, EpisodeBagWriter, score_bag
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, plan_episode
-from ddarm_tuner.ros_episode import GraphDriver, episode_record
+from ddarm_sim.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
+from ddarm_sim.ros_interface import (descriptor, parameter_file_refusal, proposed_values, refuse_undeclared_parameters,
+                                     undeclared_overrides)
+from ddarm_tuner.bags import STORAGES, BagError, score_bag
+from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, check_episode
+from ddarm_tuner.interrupts import Interrupted, stop_on_signals
+from ddarm_tuner.ros_episode import PEER_TIMEOUT, GraphDriver, GraphEpisodeError, episode_record
 from ddarm_tuner.runs import DEFAULT_ROOT, RunFolder
 
 
@@ -24,7 +29,9 @@ class TunerNode(GraphDriver):
 
     Gains come from `kp`/`kv`, or from `gains_file` (a controller parameter YAML such as
     `ddarm tune` writes). Results land in <output_root>/<run_name>/: a bag per episode,
-    summary.json with the indices scored from each bag, and run.log.
+    summary.json with the indices scored from each bag, and run.log. Every episode is checked
+    before it starts (`ddarm_tuner.ros_episode.GraphDriver`): the plant and the controller on the
+    graph once each, and nobody else publishing on the episode's topics.
     """
 
     def __init__(self, **kwargs) -> None:
@@ -46,20 +53,35 @@ class TunerNode(GraphDriver):
             ('run_name', '', descriptor('run folder name ("" = tuner-<date>-<time>); never reused')),
             ('storage', 'mcap', descriptor('bag storage: mcap or sqlite3')),
             ('episode_timeout', 120.0, descriptor('wall seconds one episode may take', floating=(1.0, 86400.0))),
+            ('peer_timeout', PEER_TIMEOUT, descriptor('wall seconds to wait for the plant and the controller '
+                                                      'on the graph before each episode', floating=(0.1, 3600.0))),
         ]
         for name, default, described in declared:
             self.declare_parameter(name, default, described)
+        refuse_undeclared_parameters(self, 'tuner')
+        try:
+            self.specs = self._checked_sweep()
+        except BaseException:
+            self.destroy_node()  # a refused tuner leaves no node on the graph behind it
+            raise
+
+    def _checked_sweep(self) -> list:
         unknown = undeclared_overrides(self)
         if unknown:
             raise EpisodeError(f'unknown parameters {unknown} (not tuner parameters: a typo?)')
         self.values = proposed_values(self, ())
-        self.specs = self._episode_specs()
+        if self.values['controller'] not in CONTROLLERS:
+            raise EpisodeError(f"controller must be one of {CONTROLLERS}, got {self.values['controller']!r}")
+        if self.values['storage'] not in STORAGES:
+            raise EpisodeError(f"storage must be one of {sorted(STORAGES)}, got {self.values['storage']!r}")
+        return self._episode_specs()
 
     def _gains(self) -> tuple[list, list, int]:
         values = self.values
         if values['gains_file']:
             try:
-                document = yaml.safe_load(open(values['gains_file']))
+                with open(values['gains_file']) as file:
+                    document = yaml.safe_load(file)
                 gains = document[values['controller']]['ros__parameters']
                 return gains['kp'], gains['kv'], gains.get('compute_delay_steps', values['delay'])
             except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
@@ -70,24 +92,36 @@ class TunerNode(GraphDriver):
         return values['kp'], values['kv'], values['delay']
 
     def _episode_specs(self) -> list[tuple[str, EpisodeSpec]]:
+        """Every episode of the sweep, each checked as a run would check it: nothing reaches ROS that would be refused."""
         values = self.values
         kp, kv, delay = self._gains()
+        if not values['taus'] or not values['torque_limits']:
+            raise EpisodeError('taus and torque_limits need at least one value each')
         specs = []
         for limit in values['torque_limits']:
             for tau in values['taus']:
-                spec = EpisodeSpec(controller=values['controller'], kp=kp, kv=kv, trajectory=values['trajectory'],
-                                   duration=values['duration'], period=values['period'], delay=delay, tau=tau,
-                                   torque_limit=limit, substeps=values['substeps'])
-                specs.append((f'{len(specs):03d}-tau{tau:g}-{limit}', spec))
+                if not np.isfinite(tau):
+                    raise EpisodeError(f'taus: {tau!r} is not a finite number')
+                try:
+                    spec = EpisodeSpec(controller=values['controller'], kp=kp, kv=kv,
+                                       trajectory=values['trajectory'], duration=values['duration'],
+                                       period=values['period'], delay=delay, tau=tau, torque_limit=limit,
+                                       substeps=values['substeps'])
+                    plan = check_episode(spec)
+                except (EpisodeError, TypeError, ValueError) as error:
+                    source = f"gains_file {values['gains_file']}" if values['gains_file'] else 'parameters'
+                    raise EpisodeError(f'episode τ = {tau:g}, torque limit {limit!r} ({source}): {error}') from error
+                specs.append((f'{len(specs):03d}-tau{tau:g}-{limit}', spec, plan))
         return specs
 
     def run_sweep(self, executor, run: RunFolder) -> None:
-        for name, spec in self.specs:
-            plan = plan_episode(spec)
+        for name, spec, plan in self.specs:
             path = run.bag_path(name)
-            with EpisodeBagWriter(path, episode_record(spec, plan, 'ros-lockstep', run.summary['command']),
-                                  self.values['storage']) as bag:
-                result = self.run_episode(executor, spec, plan, bag, timeout=self.values['episode_timeout'])
+            self.wait_for_peers(executor, spec.controller, self.values['peer_timeout'])
+            with self.open_bag(path, episode_record(spec, plan, 'ros-lockstep', run.summary['command']),
+                               self.values['storage']) as bag:
+                result = self.run_episode(executor, spec, plan, bag, timeout=self.values['episode_timeout'],
+                                          peer_timeout=self.values['peer_timeout'])
                 bag.close(complete=True)
             # The episode is on disk and closed: scoring it needs no ROS.
             scored = score_bag(path)
@@ -99,34 +133,55 @@ class TunerNode(GraphDriver):
 
 
 def main(args=None) -> int:
+    """The tuner as an executable: 0 when the sweep completed, 2 when it failed or was refused,
+    128 + the signal when SIGINT or SIGTERM stopped it (finished bags complete, the one under way
+    marked incomplete, the summary `interrupted`)."""
     args = sys.argv if args is None else args
-    rclpy.init(args=args)
-    node, run = None, None
-    status = 'failed'
     try:
-        node = TunerNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        name = node.values['run_name'] or time.strftime('tuner-%Y%m%d-%H%M%S')
-        run = RunFolder(name, node.values['output_root'], command=' '.join(args))
-        node.run_sweep(executor, run)
-        status = 'complete'
-    except (KeyboardInterrupt, ExternalShutdownException):
-        status = 'interrupted'
-    except (EpisodeError, BagError, ParameterException, RuntimeError) as error:
-        if not rclpy.ok():  # a ROS call raced the shutdown of a SIGINT/SIGTERM
-            status = 'interrupted'
-        else:
-            print(f'tuner: {error}', flush=True)
-            if run is not None:
-                run.log.error('%s', error)
+        parameter_files = read_parameter_files(args)
+    except ParameterFileError as error:
+        print(f'tuner: refused to start: {error}', file=sys.stderr, flush=True)
+        return 2
+    # Our handlers, not rclpy's: a signal then stops the sweep at once, wherever it is.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    try:
+        with stop_on_signals():
+            try:
+                node = TunerNode()
+                refuse_unconfigured(parameter_files, node.get_fully_qualified_name())
+            except (EpisodeError, BagError, ParameterException, ParameterFileError) as error:
+                if node is None and parameter_files:  # refused on defaults: a file for another node is the cause
+                    error = parameter_file_refusal(parameter_files, 'tuner') or error
+                print(f'tuner: refused to start: {error}', file=sys.stderr, flush=True)
+                return 2
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            name = node.values['run_name'] or time.strftime('tuner-%Y%m%d-%H%M%S')
+            try:
+                run = RunFolder(name, node.values['output_root'], command=' '.join(args))
+            except BagError as error:
+                print(f'tuner: {error}', file=sys.stderr, flush=True)
+                return 2
+            with run:
+                try:
+                    node.run_sweep(executor, run)
+                except (GraphEpisodeError, BagError) as error:
+                    print(f'tuner: {error}', file=sys.stderr, flush=True)
+                    run.finish('failed', error=str(error))
+                    return 2
+                run.finish('complete')
+        return 0
+    except Interrupted as stop:
+        print(f'tuner: {stop}; the run is marked interrupted', file=sys.stderr, flush=True)
+        return stop.exit_code
+    except ExternalShutdownException:
+        print('tuner: ROS was shut down under the sweep; the run is marked failed', file=sys.stderr, flush=True)
+        return 2
     finally:
-        if run is not None:
-            run.finish(status)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0 if status in ('complete', 'interrupted') else 2
 
 
 if __name__ == '__main__':

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
 import yaml
 
 from ddarm_tuner.bags import BagError, checked_output_path, child_path
+from ddarm_tuner.interrupts import Interrupted
 
 DEFAULT_ROOT = Path('runs')
 
@@ -27,7 +29,9 @@ class RunFolder:
     """runs/<name>/: created new (never reused), with summary.json, run.log and bags/ when episodes are recorded.
 
     The summary is rewritten after every episode, so a run stopped part way leaves a true
-    account of what finished.
+    account of what finished. Its status is `running` from the start (with the process ID, so a
+    run killed outright shows as a `running` whose process is gone), then `complete`, `failed`
+    or `interrupted`. Used as a context manager, a run left by an exception is marked for it.
     """
 
     def __init__(self, name: str, root: Path | str = DEFAULT_ROOT, command: str = '') -> None:
@@ -38,7 +42,8 @@ class RunFolder:
         self.path = child_path(root, name)
         self.path.mkdir()
         self.summary = {'name': name, 'command': command, 'started': time.strftime('%Y-%m-%dT%H:%M:%S%z'),
-                        'status': 'running', 'episodes': []}
+                        'status': 'running', 'pid': os.getpid(), 'episodes': []}
+        self.finished = False
         self.log = logging.getLogger(f'ddarm.run.{name}')
         self.log.setLevel(logging.INFO)
         self._handler = logging.FileHandler(self.path / 'run.log')
@@ -64,11 +69,27 @@ class RunFolder:
         return path
 
     def finish(self, status: str, **extra) -> None:
+        if self.finished:
+            return
         self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
         self._write_summary()
         self.log.info('run %s', status)
         self.log.removeHandler(self._handler)
         self._handler.close()
+        self.finished = True
+
+    def __enter__(self) -> RunFolder:
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is None:
+            return
+        if issubclass(kind, (Interrupted, KeyboardInterrupt)):
+            self.log.info('%s', error or 'interrupted')
+            self.finish('interrupted')
+        else:
+            self.log.error('%s: %s', kind.__name__, error)
+            self.finish('failed', error=f'{kind.__name__}: {error}')
 
     def _write_summary(self) -> None:
         partial = self.path / 'summary.json.partial'

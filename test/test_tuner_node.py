@@ -15,6 +15,7 @@ from ddarm_tuner.bags import BagError, bag_status, score_bag
 from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, run_episode
 from ddarm_tuner.node import TunerNode
 from ddarm_tuner.runs import RunFolder
+from process_helpers import stop
 
 GAINS = {'computed_torque': ([900.0] * 3, [60.0] * 3, 1),
          'pd_gravity': ([28000.0, 27000.0, 3500.0], [1760.0, 1700.0, 220.0], 0)}
@@ -29,18 +30,6 @@ def start_nodes(law, folder):
                                    '-p', f'kp:={kp}', '-p', f'kv:={kv}'],
                                   stdout=open(folder / 'controller.log', 'w'), stderr=subprocess.STDOUT)
     return [plant, controller]
-
-
-def stop(processes):
-    for process in processes:
-        process.send_signal(signal.SIGINT)
-    for process in processes:
-        try:
-            process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-            raise
 
 
 @pytest.mark.parametrize('law', ['computed_torque', 'pd_gravity'])
@@ -88,7 +77,7 @@ def test_sigterm_stops_the_tuner_and_every_finished_bag_reads_back(tmp_path):
             assert time.monotonic() < deadline and tuner.poll() is None, (tmp_path / 'tuner.log').read_text()
             time.sleep(0.1)  # polling another process's files: there is no event to wait on
         tuner.send_signal(signal.SIGTERM)
-        assert tuner.wait(timeout=60) == 0
+        assert tuner.wait(timeout=60) == 128 + signal.SIGTERM
     finally:
         stop(nodes)
     summary = json.loads(summary_path.read_text())
@@ -111,7 +100,36 @@ def test_sigterm_stops_the_tuner_and_every_finished_bag_reads_back(tmp_path):
 
 
 def test_tuner_parameter_typos_are_refused(ros_context):
+    with pytest.raises(EpisodeError, match='kp needs 3'):
+        TunerNode(context=ros_context, parameter_overrides=[Parameter('kp', value=[1.0, 2.0]),
+                                                            Parameter('kv', value=[1.0, 2.0, 3.0])])
     with pytest.raises(EpisodeError, match="unknown parameters \\['tau'\\]"):
         TunerNode(context=ros_context, parameter_overrides=[Parameter('tau', value=0.1)])
     with pytest.raises(EpisodeError, match='gains_file'):
         TunerNode(context=ros_context, parameter_overrides=[Parameter('gains_file', value='/nonexistent.yaml')])
+
+
+def test_a_node_that_dies_during_a_sweep_is_named(tmp_path):
+    nodes = start_nodes('computed_torque', tmp_path)
+    tuner = subprocess.Popen(
+        [sys.executable, '-m', 'ddarm_tuner.node', '--ros-args', '-p', 'kp:=[900.0,900.0,900.0]',
+         '-p', 'kv:=[60.0,60.0,60.0]', '-p', f"taus:=[{','.join(['0.0'] * 30)}]",
+         '-p', f'output_root:={tmp_path / "runs"}', '-p', 'run_name:=killed'],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    summary_path = tmp_path / 'runs' / 'killed' / 'summary.json'
+    try:
+        deadline = time.monotonic() + 120
+        while not (summary_path.exists() and json.loads(summary_path.read_text())['episodes']):
+            assert time.monotonic() < deadline and tuner.poll() is None, tuner.communicate()
+            time.sleep(0.05)  # polling another process's files: there is no event to wait on
+        nodes[0].kill()  # the plant, mid-sweep
+        _, err = tuner.communicate(timeout=60)
+    finally:
+        stop(nodes)
+    assert tuner.returncode == 2
+    # Named by whichever notices first: the driver (no state owed by the plant) or DDS (the node left).
+    failure = err.strip().splitlines()[-1]
+    assert failure.startswith('tuner: ') and '/plant' in failure and 'Traceback' not in err, err
+    assert 'published nothing' in failure or 'left the graph' in failure, failure
+    summary = json.loads(summary_path.read_text())
+    assert summary['status'] == 'failed' and '/plant' in summary['error']

@@ -1,0 +1,84 @@
+"""Fail fast and say what is wrong (issue: trust): refusals that come before any search, episode or bag,
+name the option, path or node, and exit 2 without a traceback."""
+
+import subprocess
+import sys
+
+import pytest
+
+from ddarm_tuner.cli import main
+from process_helpers import DDARM
+
+
+def test_omega_with_kv_is_refused(capsys):
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15', '--kv', '1', '1', '1']) == 2
+    assert '--kv goes with --kp' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('command', [
+    ['tune', '--controller', 'computed_torque', '--index', '2.5', '--budget', '100000'],
+    ['omega', '--controller', 'computed_torque', '--max-error', '0.5', '--disturbance', '0', '20', '5'],
+])
+def test_an_existing_out_file_is_refused_before_any_work(capsys, tmp_path, command):
+    existing = tmp_path / 'gains.yaml'
+    existing.write_text('kept: true\n')
+    assert main([*command, '--runs', str(tmp_path / 'runs'), '--out', str(existing)]) == 2
+    err = capsys.readouterr().err
+    assert f'{existing} exists already' in err and 'searching' not in err
+    assert existing.read_text() == 'kept: true\n' and not (tmp_path / 'runs').exists()
+
+
+def test_an_existing_run_folder_is_refused_before_any_work(capsys, tmp_path):
+    (tmp_path / 'runs' / 'taken').mkdir(parents=True)
+    assert main(['tune', '--controller', 'computed_torque', '--index', '2.5', '--budget', '100000',
+                 '--runs', str(tmp_path / 'runs'), '--run', 'taken']) == 2
+    assert 'taken exists already' in capsys.readouterr().err
+
+
+def test_an_existing_bag_is_refused_before_any_node_starts(capsys, tmp_path):
+    (tmp_path / 'bag').mkdir()
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15', '--ros',
+                 '--bag', str(tmp_path / 'bag')]) == 2
+    assert 'exists already' in capsys.readouterr().err
+
+
+def test_bad_gains_are_refused_before_the_graph_starts(capsys):
+    assert main(['episode', '--controller', 'computed_torque', '--kp', '1', '2', '--kv', '1', '2', '--ros']) == 2
+    assert 'kp needs 3' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('arguments, problem', [
+    (['-p', 'kp:=[1.0,2.0]', '-p', 'kv:=[1.0,2.0,3.0]'], 'kp needs 3'),
+    (['-p', 'kp:=[1.0,2.0,3.0]', '-p', 'kv:=[1.0,2.0,3.0]', '-p', 'storage:=zip'], 'storage must be one of'),
+    (['-p', 'kp:=[1.0,2.0,3.0]', '-p', 'kv:=[1.0,2.0,3.0]', '-p', "torque_limits:=['max']"], 'torque_limit'),
+])
+def test_the_tuner_refuses_a_bad_sweep_at_start(tmp_path, arguments, problem):
+    done = subprocess.run([str(DDARM), 'tuner', '--ros-args', *arguments, '-p', f'output_root:={tmp_path}'],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert problem in done.stderr and 'Traceback' not in done.stderr, done.stderr
+    assert not any(tmp_path.iterdir()), 'a refused sweep leaves no run folder'
+
+
+def test_the_tuner_refuses_a_parameter_file_that_configures_no_tuner(tmp_path):
+    parameters = tmp_path / 'tuner.yaml'
+    parameters.write_text('tunr:\n  ros__parameters:\n    kp: [1.0, 2.0, 3.0]\n')
+    done = subprocess.run([sys.executable, '-m', 'ddarm_tuner.node', '--ros-args', '--params-file', str(parameters)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert str(parameters) in done.stderr and 'tunr' in done.stderr and 'Traceback' not in done.stderr
+
+
+def test_a_bag_on_a_full_disk_is_a_named_refusal_not_a_traceback(tmp_path):
+    """RLIMIT_FSIZE makes writes past a size fail as a full disk does (EFBIG rather than ENOSPC)."""
+    script = ('import resource, signal, sys\n'
+              'signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n'
+              'resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))\n'
+              'from ddarm_tuner.cli import main\n'
+              'sys.exit(main(sys.argv[1:]))\n')
+    bag = tmp_path / 'bag'
+    done = subprocess.run([sys.executable, '-c', script, 'episode', '--controller', 'computed_torque', '--omega',
+                           '15', '--ros', '--storage', 'sqlite3', '--bag', str(bag)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert f'{bag}: cannot write the bag' in done.stderr and 'Traceback' not in done.stderr, done.stderr
