@@ -176,7 +176,8 @@ class EpisodeBagWriter:
         self.failure: str | None = None
         self.writer: Writer | None = None
         text = json.dumps(episode, sort_keys=True)
-        with self._writing():
+        # A stop during the opening waits for its end, then drops the writer, which closes it incomplete.
+        with critical_section(), self._writing():
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=STORAGES[storage])
             self.writer.open()
