@@ -54,6 +54,9 @@ PLANT_STALL_TIMEOUT = 5.0
 # Waiting on the controller, the plant reports its own command timeout; nothing at all for this
 # long means that report is lost too.
 STALL_TIMEOUT = COMMAND_TIMEOUT + 5.0
+# Before the plant starts an episode, the states and commands still in flight from the one before
+# (a controller that was slow or stopped answers late) must have arrived: this long without any.
+QUIET_PERIOD = 0.05
 # Plant counters that make a lockstep episode, or a real-time one, a failed episode: a command the
 # plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
 # The profile each recorded topic's publisher declares (ddarm_sim.ros_interface).
@@ -212,6 +215,7 @@ class GraphDriver(Node):
             self.reset_clients[law] = self.create_client(Trigger, f'{law}/reset')
         self._next_graph_check = 0.0
         self._peer_missing_since: float | None = None
+        self.last_traffic = 0.0  # wall time of the last state or command heard, in an episode or not
 
     def node_name(self, name: str) -> str:
         """The fully qualified name of a node `name` in this driver's namespace."""
@@ -320,6 +324,7 @@ class GraphDriver(Node):
         self._record(CLOCK_TOPIC, msg.clock, msg)
 
     def _on_state(self, msg: JointState) -> None:
+        self.last_traffic = time.monotonic()
         if self.recording is None:
             return
         try:
@@ -347,6 +352,7 @@ class GraphDriver(Node):
             self.recording.last_state_heard = True
 
     def _on_command(self, msg: JointState) -> None:
+        self.last_traffic = time.monotonic()
         if self.recording is None:
             return
         try:
@@ -470,6 +476,8 @@ class GraphDriver(Node):
                 if all(state[key] == value for key, value in expected.items()):
                     break
                 executor.spin_once(timeout_sec=0.01)
+            self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
+                             'the messages of the last episode to drain', watching)
             self.recording = Recording(plan.k_max, spec.controller)
             self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
             reply = self._reset(executor, self.plant_node, deadline, watching)

@@ -90,6 +90,13 @@ def timeout(sequence):
             sequence.episode(GOOD, alive=stop_the_controller_at_sample_5)
     finally:
         controller.send_signal(signal.SIGCONT)
+    # Its late answers to the stopped episode come once it runs again. The driver waits a short quiet
+    # period before each episode; a loaded machine may take longer to wake the controller, so wait for them.
+    driver = sequence.driver
+    deadline = time.monotonic() + 10
+    while time.monotonic() - driver.last_traffic < 1.0:
+        assert time.monotonic() < deadline, 'the controller kept publishing'
+        sequence.executor.spin_once(timeout_sec=0.05)
 
 
 def no_start(sequence):
