@@ -7,6 +7,7 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -15,10 +16,12 @@ from ddarm_sim.trajectory import paper_trajectory
 from ddarm_tuner.bags import checked_output_path
 from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega
 from ddarm_tuner.procedures import omega_procedure
-from ddarm_tuner.ros_episode import GraphSession, record_and_score
 from ddarm_tuner.batch import simulate_batch
 from ddarm_tuner.search import INDICES, omega_starts, search_gains
 from ddarm_tuner.tune import with_gains
+
+if TYPE_CHECKING:  # the episodes run through a ROS session; the claims and tables need no ROS
+    from ddarm_tuner.ros_episode import GraphSession
 
 PAPER_DELAYS = {'pd_gravity': 0, 'computed_torque': 1}
 CONTROLLERS = ('pd_gravity', 'computed_torque')
@@ -135,6 +138,8 @@ class Reproduction:
 
     def _episode(self, session: GraphSession, spec: EpisodeSpec, name: str) -> dict:
         """One recorded episode through the graph, scored from its bag; the row fields every table shares."""
+        from ddarm_tuner.ros_episode import record_and_score
+
         bag = checked_output_path(self.out / 'bags' / name)
         _, scored = record_and_score(session, spec, bag, command=self.command)
         limit = np.array(scored['max_abs_nominal_torque']) * 2.0
