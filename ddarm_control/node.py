@@ -90,6 +90,10 @@ class ControllerNode(Node):
             JointTrajectory, REFERENCE_TOPIC, self._on_reference, REFERENCE_QOS,
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
+        self.status_service = self.create_service(Trigger, '~/status', self._on_status)
+        # Counts every change of what the commands are computed from (parameters, reference, reset), so a
+        # driver can tell whether anyone touched the controller while an episode ran.
+        self.configuration = 0
         self.last_sample: int | None = None
         self.waiting: deque = deque(maxlen=MAX_WAITING_STATES)
         self.get_logger().info(self._describe())
@@ -146,6 +150,7 @@ class ControllerNode(Node):
                                        *self._friction(values))
         if values['compute_delay_steps'] != self.controller.delay:
             self.controller.set_delay(values['compute_delay_steps'])
+        self.configuration += 1
         self.get_logger().info(self._describe())
 
     def _set_gains(self, values: dict) -> None:
@@ -172,22 +177,29 @@ class ControllerNode(Node):
             self.get_logger().error(f'refused: {error}')
             return
         self._set_gains(proposed_values(self, ()))
+        self.configuration += 1
         self.get_logger().info(f'reference of {len(self.reference.times)} samples; {self._describe()}')
         while self.waiting:
             self._command(self.waiting.popleft())
 
     def _on_reset(self, request, response):
-        """Clear the delay buffer; the reply (JSON) says what the next episode will run with."""
+        """Clear the delay buffer; the reply (JSON, as ~/status gives) says what the next episode will run with."""
         self.controller.reset()
         self.last_sample = None
         self.waiting.clear()
+        self.configuration += 1
+        return self._on_status(request, response)
+
+    def _on_status(self, request, response):
+        """What the commands are computed from, changing nothing: gains, delay, reference, configuration count."""
         response.success = self.reference is not None and self.gains_ready
         law = self.controller.law
         response.message = json.dumps({
             'ready': response.success, 'kp': law.kp.tolist(), 'kv': law.kv.tolist(),
             'delay': self.controller.delay, 'period': self.period,
             'reference_samples': 0 if self.reference is None else len(self.reference.times),
-            'reference_final': None if self.reference is None else self.reference.q[-1].tolist()})
+            'reference_final': None if self.reference is None else self.reference.q[-1].tolist(),
+            'configuration': self.configuration})
         return response
 
     def _on_state(self, msg: JointState) -> None:

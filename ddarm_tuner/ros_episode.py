@@ -37,6 +37,7 @@ from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DI
 from ddarm_sim.samples import MessageError
 from ddarm_tuner.bags import EpisodeBagWriter, checked_output_path
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, check_episode, load_arm, score
+from ddarm_tuner.interrupts import check_stop
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
@@ -59,6 +60,8 @@ STALL_TIMEOUT = COMMAND_TIMEOUT + 5.0
 QUIET_PERIOD = 0.05
 # Plant counters that make a lockstep episode, or a real-time one, a failed episode: a command the
 # plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
+# What the graph API says of an endpoint whose node it has not learnt yet.
+UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 # The profile each recorded topic's publisher declares (ddarm_sim.ros_interface).
 TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: SAMPLE_QOS,
              '/' + REFERENCE_TOPIC: REFERENCE_QOS, CLOCK_TOPIC: CLOCK_QOS, DIAGNOSTICS_TOPIC: DIAGNOSTICS_QOS}
@@ -210,9 +213,11 @@ class GraphDriver(Node):
         }
         self.parameter_clients = {plant_node: AsyncParameterClient(self, plant_node)}
         self.reset_clients = {plant_node: self.create_client(Trigger, f'{plant_node}/reset')}
+        self.status_clients = {}
         for law in CONTROLLERS:
             self.parameter_clients[law] = AsyncParameterClient(self, law)
             self.reset_clients[law] = self.create_client(Trigger, f'{law}/reset')
+            self.status_clients[law] = self.create_client(Trigger, f'{law}/status')
         self._next_graph_check = 0.0
         self._peer_missing_since: float | None = None
         self.last_traffic = 0.0  # wall time of the last state or command heard, in an episode or not
@@ -255,20 +260,22 @@ class GraphDriver(Node):
                 foreign.append(f'{self.node_name(other)} is running too: two laws would answer the same states')
         heard = self.publishers(law)
         for topic, (resolved, owner) in self.topic_owners(law).items():
-            others = [node for node in heard[topic] if node != owner]
             if topic == DIAGNOSTICS_TOPIC:
                 continue  # many nodes publish diagnostics; only the plant's own status is read
+            # Discovery can name an endpoint's node a moment after the endpoint: alone, it is ours not yet known.
+            others = [node for node in heard[topic] if node != owner and UNKNOWN_NODE not in node]
             if others or len(heard[topic]) > 1:
                 foreign.append(f'{resolved} is published by {sorted(heard[topic])}; only {owner} may publish it '
                                f'(foreign: {sorted(set(others))})')
-            elif not heard[topic]:
-                missing.append(f'nobody publishes {resolved} (expected {owner})')
+            elif not heard[topic] or heard[topic] != [owner]:
+                missing.append(f'nobody known publishes {resolved} (expected {owner}; heard {heard[topic]})')
         return foreign, missing
 
     def wait_for_peers(self, executor, law: str, timeout: float = PEER_TIMEOUT, alive=lambda: None) -> None:
         """Until the plant and the `law` controller are on the graph, alone; names what is wrong if they never are."""
         deadline = time.monotonic() + timeout
         while True:
+            check_stop()
             foreign, missing = self.graph_problems(law)
             if not foreign and not missing:
                 return
@@ -339,9 +346,14 @@ class GraphDriver(Node):
                                       f'sample {self.recording.k_max + 1}')
             return
         self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
+        topic = self.subscriptions_by_topic['/' + JOINT_STATES_TOPIC].topic_name
         if sample.n in self.recording.states:
-            self.recording.fail(f'two joint states for sample {sample.n}: a second publisher on '
-                                f'{self.subscriptions_by_topic["/joint_states"].topic_name}?')
+            self.recording.fail(f'two joint states for sample {sample.n}: a second publisher on {topic}?')
+            return
+        expected = max(self.recording.states) + 1 if self.recording.states else 0
+        if sample.n != expected:  # one publisher, reliable: the plant's states come in order, one per sample
+            self.recording.fail(f'a joint state for sample {sample.n} where sample {expected} was due: '
+                                f'a second publisher on {topic}?')
             return
         self.recording.last_heard = time.monotonic()
         if sample.q is None:  # the plant diverged during the period before this stamp
@@ -413,6 +425,7 @@ class GraphDriver(Node):
 
     def _spin_until(self, executor, done, deadline: float, what: str, alive) -> None:
         while True:
+            check_stop()
             if not self.context.ok():  # rclpy's signal handler shut the context down
                 raise ExternalShutdownException(f'shut down while waiting for {what}')
             if done():
@@ -423,8 +436,8 @@ class GraphDriver(Node):
             alive()
             executor.spin_once(timeout_sec=0.05)
 
-    def _reset(self, executor, node: str, deadline: float, alive):
-        client = self.reset_clients[node]
+    def _reset(self, executor, node: str, deadline: float, alive, clients=None):
+        client = (clients or self.reset_clients)[node]
         self._spin_until(executor, client.service_is_ready, deadline, f'service {client.srv_name}', alive)
         future = client.call_async(Trigger.Request())
         self._spin_until(executor, future.done, deadline, f'a reply from {client.srv_name}', alive)
@@ -476,6 +489,7 @@ class GraphDriver(Node):
                 if all(state[key] == value for key, value in expected.items()):
                     break
                 executor.spin_once(timeout_sec=0.01)
+            configuration = state['configuration']
             self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
                              'the messages of the last episode to drain', watching)
             self.recording = Recording(plan.k_max, spec.controller)
@@ -487,11 +501,17 @@ class GraphDriver(Node):
             self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', watching)
             if self.recording.error:
                 raise GraphEpisodeError(self.recording.error)
-            counted = {name: int(self.recording.plant_report.get(name, 0)) for name in FAILING_COUNTERS[mode]}
+            counted = plant_counters(self.recording.plant_report, FAILING_COUNTERS[mode],
+                                     self.node_name(self.plant_node))
             if any(counted.values()):
                 raise GraphEpisodeError(f'{self.node_name(self.plant_node)} counted {counted} during the episode: '
                                         'commands it refused, missed or got twice (a foreign publisher?)')
             self._watch_graph_now(spec.controller)
+            after = json.loads(self._reset(executor, spec.controller, deadline, watching, self.status_clients).message)
+            if after.get('configuration') != configuration:
+                raise GraphEpisodeError(f'{self.node_name(spec.controller)} was reconfigured, reset or sent another '
+                                        'reference during the episode (by another node?): its commands may not be '
+                                        "this episode's")
             if bag is not None:
                 bag.set_publishers(self.bag_publishers(spec.controller))
             return result_from_recording(spec, plan, self.recording)
@@ -501,6 +521,15 @@ class GraphDriver(Node):
     def _watch_graph_now(self, law: str) -> None:
         self._next_graph_check = 0.0
         self._watch_graph(law)
+
+
+def plant_counters(report: dict, names, plant: str) -> dict[str, int]:
+    """The plant's counters from its report; a report that does not parse is not the plant's word."""
+    try:
+        return {name: int(report.get(name, 0)) for name in names}
+    except (TypeError, ValueError) as error:
+        raise GraphEpisodeError(f'the end-of-episode report of {plant} does not parse ({error}): '
+                                'a foreign publisher on /diagnostics?') from error
 
 
 def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> EpisodeResult:

@@ -78,47 +78,41 @@ def hand_started(tmp_path):
     stop(processes)
 
 
-def tuner_node(context):
-    node = TunerNode(context=context, parameter_overrides=[
-        Parameter('kp', value=KP), Parameter('kv', value=KV), Parameter('peer_timeout', value=5.0)])
+def assert_episode_fails(context, problem, *others, peer_timeout=5.0):
+    """The tuner's first episode, with `others` (intruder nodes) spun beside it, fails matching `problem`."""
+    node = TunerNode(context=context, parameter_overrides=[Parameter('kp', value=KP), Parameter('kv', value=KV)])
     executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    return node, executor
+    for each in (node, *others):
+        executor.add_node(each)
+    try:
+        with pytest.raises(GraphEpisodeError, match=problem):
+            node.run_episode(executor, node.specs[0][1], node.specs[0][2], peer_timeout=peer_timeout)
+    finally:
+        executor.shutdown()
+        for each in (node, *others):
+            each.destroy_node()
 
 
 @pytest.mark.parametrize('law, problem', [
     ('computed_torque', '2 nodes are named /computed_torque: a second controller'),
     ('pd_gravity', '/pd_gravity is running too: two laws would answer the same states'),
 ])
+
+
 def test_a_second_controller_fails_the_episode_naming_it(ros_context, hand_started, tmp_path, law, problem):
     hand_started.append(start_node(['ddarm_control.node', law, '--ros-args', '-p', f'kp:={KP}', '-p', f'kv:={KV}'],
                                    tmp_path / 'second.log'))
-    node, executor = tuner_node(ros_context)
-    try:
-        with pytest.raises(GraphEpisodeError, match=problem):
-            node.run_episode(executor, node.specs[0][1], node.specs[0][2], peer_timeout=5.0)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
+    assert_episode_fails(ros_context, problem)
 
 
 def test_a_foreign_command_publisher_fails_the_episode_naming_it(ros_context, hand_started):
-    node, executor = tuner_node(ros_context)
     intruder = rclpy.create_node('intruder', context=ros_context)
     intruder.create_publisher(JointState, 'effort_command', SAMPLE_QOS)
-    executor.add_node(intruder)
-    try:
-        with pytest.raises(GraphEpisodeError, match=r"only /computed_torque may publish it \(foreign: \['/intruder'\]"):
-            node.run_episode(executor, node.specs[0][1], node.specs[0][2], peer_timeout=5.0)
-    finally:
-        executor.shutdown()
-        intruder.destroy_node()
-        node.destroy_node()
+    assert_episode_fails(ros_context, r"only /computed_torque may publish it \(foreign: \['/intruder'\]", intruder)
 
 
 def test_a_publisher_that_joins_during_the_episode_fails_it(ros_context, hand_started):
     """It slips past the check before the episode; its commands, or the graph check during it, give it away."""
-    node, executor = tuner_node(ros_context)
     intruder = rclpy.create_node('late_intruder', context=ros_context)
     publisher = []
 
@@ -130,22 +124,86 @@ def test_a_publisher_that_joins_during_the_episode_fails_it(ros_context, hand_st
                                                  effort=[0.0] * len(msg.name)))
 
     intruder.create_subscription(JointState, 'joint_states', on_state, SAMPLE_QOS)
-    executor.add_node(intruder)
-    try:
-        with pytest.raises(GraphEpisodeError):
-            node.run_episode(executor, node.specs[0][1], node.specs[0][2], peer_timeout=5.0)
-    finally:
-        executor.shutdown()
-        intruder.destroy_node()
-        node.destroy_node()
+    assert_episode_fails(ros_context, None, intruder)
 
 
 def test_a_missing_peer_is_named_before_any_episode(ros_context):
-    node, executor = tuner_node(ros_context)
-    try:
-        with pytest.raises(GraphEpisodeError, match='no plant node /plant on the graph.*no controller node '
-                                                    '/computed_torque'):
-            node.run_episode(executor, node.specs[0][1], node.specs[0][2], peer_timeout=1.0)
-    finally:
-        executor.shutdown()
-        node.destroy_node()
+    assert_episode_fails(ros_context, 'no plant node /plant on the graph.*no controller node /computed_torque',
+                         peer_timeout=1.0)
+
+
+def intruder_at_sample(context, sample, act):
+    """A node that does `act(node)` once, when it hears the state of `sample`."""
+    intruder = rclpy.create_node('visitor', context=context)
+    done = []
+
+    def on_state(msg):
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        if not done and msg.position and round(t / 0.01) >= sample:
+            done.append(act(intruder, msg))
+
+    intruder.create_subscription(JointState, 'joint_states', on_state, SAMPLE_QOS)
+    return intruder, done
+
+
+def change_gains(node, msg):
+    from rclpy.parameter_client import AsyncParameterClient
+
+    return AsyncParameterClient(node, 'computed_torque').set_parameters([Parameter('kp', value=[400.0] * 3)])
+
+
+def reset_controller(node, msg):
+    from std_srvs.srv import Trigger
+
+    return node.create_client(Trigger, 'computed_torque/reset').call_async(Trigger.Request())
+
+
+def replace_reference(node, msg):
+    from ddarm_sim.ros_interface import REFERENCE_QOS, reference_msg
+    from ddarm_tuner.episodes import check_episode
+    from trajectory_msgs.msg import JointTrajectory
+
+    plan = check_episode(EpisodeSpec(controller='computed_torque', kp=KP, kv=KV))
+    publisher = node.create_publisher(JointTrajectory, 'reference', REFERENCE_QOS)
+    publisher.publish(reference_msg(msg.name, plan.times, plan.q_ref + 0.05, plan.v_ref, plan.a_ref, plan.nominal))
+    return publisher
+
+
+def state_ahead(node, msg):
+    publisher = node.create_publisher(JointState, 'joint_states', SAMPLE_QOS)
+    t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 + 0.5
+    publisher.publish(joint_state_msg(msg.name, t, list(msg.position), list(msg.velocity)))
+    return publisher
+
+
+@pytest.mark.parametrize('act, problem', [
+    (change_gains, 'was reconfigured, reset or sent another reference during the episode'),
+    (reset_controller, 'was reconfigured, reset or sent another reference during the episode'),
+    (replace_reference, 'was reconfigured, reset or sent another reference during the episode'
+                        "|/reference is published by \\['/tuner', '/visitor'\\]"),
+    (state_ahead, r'a joint state for sample \d+ where sample \d+ was due'),
+])
+
+
+def test_a_node_that_meddles_once_during_the_episode_fails_it(ros_context, hand_started, act, problem):
+    """Services and one-shot publishers slip past any graph check: the controller's configuration count
+    and the order of the states give them away."""
+    intruder, done = intruder_at_sample(ros_context, 30, act)
+    assert_episode_fails(ros_context, problem, intruder)
+    assert done, 'the intruder never acted'
+
+
+def test_a_forged_plant_report_is_a_named_failure_not_a_crash(ros_context, hand_started):
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    from ddarm_sim.ros_interface import DIAGNOSTICS_QOS
+
+    def forge(node, msg):
+        publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
+        values = {'event': 'complete', 'node': '/plant', 'refused_commands': 'notanumber'}
+        publisher.publish(DiagnosticArray(status=[DiagnosticStatus(
+            name='ddarm/plant', values=[KeyValue(key=k, value=v) for k, v in values.items()])]))
+        return publisher
+
+    intruder, _ = intruder_at_sample(ros_context, 5, forge)
+    assert_episode_fails(ros_context, 'report of /plant does not parse', intruder)
