@@ -135,6 +135,9 @@ def checked_output_path(path: Path | str) -> Path:
             raise BagError(f'{path}: {parent} is a symlink; refusing to write through it')
     if path.exists():
         raise BagError(f'{path} exists already, not overwriting')
+    ancestor = next(parent for parent in path.parents if parent.exists())
+    if not ancestor.is_dir():
+        raise BagError(f'{path}: {ancestor} is a file, not a folder')
     return path
 
 

@@ -17,7 +17,7 @@ from ddarm_sim.plant import DEFAULT_SUBSTEPS, PlantError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 from ddarm_tuner.bench import add_bench_parser
 from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
-from ddarm_tuner.interrupts import Interrupted, stop_on_signals
+from ddarm_tuner.interrupts import Interrupted, critical_section, stop_on_signals
 
 
 def _finite(text: str) -> float:
@@ -149,13 +149,20 @@ def command_score(args: argparse.Namespace) -> int:
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
-    """Refuse an existing --out, or a --run folder that exists, before any search or episode."""
-    from ddarm_tuner.bags import checked_output_path, child_path
+    """Refuse an --out or run folder that cannot be written as asked, before any search or episode."""
+    from pathlib import Path
+
+    from ddarm_tuner.bags import BagError, checked_output_path
+    from ddarm_tuner.runs import RunFolder
 
     if args.out:
-        checked_output_path(args.out)
+        out = checked_output_path(args.out)
+        if not out.parent.is_dir():
+            raise BagError(f'--out {out}: the folder {out.parent} does not exist')
     if args.run:
-        child_path(args.runs, args.run)
+        RunFolder.checked_path(args.run, Path(args.runs))
+    else:
+        RunFolder.checked_root(Path(args.runs))
 
 
 def _run_folder(args: argparse.Namespace, kind: str):
@@ -325,9 +332,11 @@ def command_reproduce(args: argparse.Namespace) -> int:
         reproduction.judge_claims()
         results = reproduction.results
         results['wall_time_s'] = time.perf_counter() - started
-        (out / 'results.json').write_text(json.dumps(results, indent=2))
-        written = write_report(out, results)
-        run.finish('complete', report=str(out / 'REPORT.md'))
+        # Every episode is done: a stop now waits for the report (plotting code turns a stop into errors of its own).
+        with critical_section():
+            (out / 'results.json').write_text(json.dumps(results, indent=2))
+            written = write_report(out, results)
+            run.finish('complete', report=str(out / 'REPORT.md'))
     progress(f'done: {out / "REPORT.md"} ({len(written)} files), results in {out / "results.json"}')
     for claim in results['claims']:
         print(f"{'REPRODUCED    ' if claim['reproduced'] else 'NOT REPRODUCED'}  {claim['claim']}: "

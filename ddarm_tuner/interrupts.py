@@ -21,18 +21,26 @@ class Interrupted(BaseException):
         return 128 + self.signum  # the shell's convention: 130 for SIGINT, 143 for SIGTERM
 
 
+# The stop asked for, kept after it is raised: a raise that lands in a finaliser or in a C
+# extension that turns it into an error of its own is lost, and `check_stop` raises it again.
+_requested: int | None = None
 _critical = 0
-_pending: list[int] = []
+_deferred: int | None = None  # a stop that came during a critical section
 
 
 def _raise(signum, frame) -> None:
-    # Further signals must not cut the clean-up this one starts (closing bags, stopping nodes).
-    for stop in STOP_SIGNALS:
-        signal.signal(stop, signal.SIG_IGN)
+    global _requested, _deferred
+    _requested = signum
     if _critical:
-        _pending.append(signum)
+        _deferred = signum
         return
     raise Interrupted(signum)
+
+
+def check_stop() -> None:
+    """At a point where work can stop (between episodes, batches, waits): raise a stop asked for and not yet taken."""
+    if _requested is not None and not _critical:
+        raise Interrupted(_requested)
 
 
 @contextlib.contextmanager
@@ -42,22 +50,26 @@ def critical_section():
     Masking the signal would not do: Python runs its handlers in the main thread whichever thread
     the signal reached, and DDS has threads of its own.
     """
-    global _critical
+    global _critical, _deferred
     _critical += 1
     try:
         yield
     finally:
         _critical -= 1
-    if not _critical and _pending:
-        raise Interrupted(_pending.pop())
+    if not _critical and _deferred is not None:
+        signum, _deferred = _deferred, None
+        raise Interrupted(signum)
 
 
 @contextlib.contextmanager
 def stop_on_signals():
     """Within the block, SIGINT or SIGTERM raises Interrupted in the main thread; old handlers come back after."""
+    global _requested, _deferred
+    _requested = _deferred = None
     previous = {stop: signal.signal(stop, _raise) for stop in STOP_SIGNALS}
     try:
         yield
     finally:
         for stop, handler in previous.items():
             signal.signal(stop, handler)
+        _requested = _deferred = None

@@ -92,7 +92,7 @@ class TunerNode(GraphDriver):
         return values['kp'], values['kv'], values['delay']
 
     def _episode_specs(self) -> list[tuple[str, EpisodeSpec]]:
-        """Every episode of the sweep, each checked as a run would check it: nothing reaches ROS that would be refused."""
+        """Every episode of the sweep, checked as a run would check it: nothing reaches ROS to be refused there."""
         values = self.values
         kp, kv, delay = self._gains()
         if not values['taus'] or not values['torque_limits']:

@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from ddarm_tuner.bags import BagError, checked_output_path, child_path
-from ddarm_tuner.interrupts import Interrupted
+from ddarm_tuner.interrupts import Interrupted, critical_section
 
 DEFAULT_ROOT = Path('runs')
 
@@ -36,11 +36,12 @@ class RunFolder:
 
     def __init__(self, name: str, root: Path | str = DEFAULT_ROOT, command: str = '') -> None:
         root = Path(root)
-        if root.is_symlink():
-            raise BagError(f'{root} is a symlink; refusing to write through it')
-        root.mkdir(parents=True, exist_ok=True)
-        self.path = child_path(root, name)
-        self.path.mkdir()
+        self.path = self.checked_path(name, root)
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            self.path.mkdir()
+        except OSError as error:
+            raise BagError(f'cannot create the run folder {self.path}: {error.strerror}') from error
         self.summary = {'name': name, 'command': command, 'started': time.strftime('%Y-%m-%dT%H:%M:%S%z'),
                         'status': 'running', 'pid': os.getpid(), 'episodes': []}
         self.finished = False
@@ -51,6 +52,21 @@ class RunFolder:
         self.log.addHandler(self._handler)
         self.log.info('run %s: %s', name, command)
         self._write_summary()
+
+    @staticmethod
+    def checked_root(root: Path | str = DEFAULT_ROOT) -> Path:
+        """A folder that can hold run folders (it may not exist yet); refused before any work otherwise."""
+        root = Path(root)
+        if root.is_symlink():
+            raise BagError(f'{root} is a symlink; refusing to write through it')
+        if root.exists() and not root.is_dir():
+            raise BagError(f'{root} is not a folder: it cannot hold run folders')
+        return root
+
+    @classmethod
+    def checked_path(cls, name: str, root: Path | str = DEFAULT_ROOT) -> Path:
+        """root/name if a new run folder can be made there; refused before any work otherwise."""
+        return child_path(cls.checked_root(root), name)
 
     def bag_path(self, episode_name: str) -> Path:
         (self.path / 'bags').mkdir(exist_ok=True)
@@ -71,12 +87,13 @@ class RunFolder:
     def finish(self, status: str, **extra) -> None:
         if self.finished:
             return
-        self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
-        self._write_summary()
-        self.log.info('run %s', status)
-        self.log.removeHandler(self._handler)
-        self._handler.close()
-        self.finished = True
+        with critical_section():  # the summary's last word is written whole, whatever signal comes
+            self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
+            self._write_summary()
+            self.log.info('run %s', status)
+            self.log.removeHandler(self._handler)
+            self._handler.close()
+            self.finished = True
 
     def __enter__(self) -> RunFolder:
         return self

@@ -15,6 +15,7 @@ import numpy as np
 from ddarm_sim.trajectory import paper_trajectory
 from ddarm_tuner.batch import simulate_batch
 from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega, plan_episode
+from ddarm_tuner.interrupts import check_stop
 
 METHODS = ('nelder-mead', 'cma')
 # The paper's index names, and the batch result field each one reads.
@@ -80,6 +81,7 @@ class _Objective:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Objective values of points (P, 2n), one batch call for those inside GAIN_RANGE."""
+        check_stop()
         points = np.asarray(points, dtype=float)
         dof = points.shape[1] // 2
         values = np.full(len(points), 3 * DIVERGED_PENALTY)

@@ -10,7 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 ROS_FACING = ('node', 'ros', 'driver', 'session', 'graph', 'cli')
 MODULES = sorted('.'.join(path.relative_to(ROOT).with_suffix('').parts)
-                 for package in ('ddarm_sim', 'ddarm_control', 'ddarm_tuner') for path in (ROOT / package).rglob('*.py'))
+                 for package in ('ddarm_sim', 'ddarm_control', 'ddarm_tuner')
+                 for path in (ROOT / package).rglob('*.py'))
 CORE = [module for module in MODULES
         if not any(word in ROS_FACING for part in module.split('.') for word in part.split('_'))]
 

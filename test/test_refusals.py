@@ -82,3 +82,25 @@ def test_a_bag_on_a_full_disk_is_a_named_refusal_not_a_traceback(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr
     assert f'{bag}: cannot write the bag' in done.stderr and 'Traceback' not in done.stderr, done.stderr
+
+
+def test_output_locations_that_cannot_be_written_are_refused_before_any_work(capsys, tmp_path):
+    a_file = tmp_path / 'a_file'
+    a_file.write_text('')
+    tune = ['tune', '--controller', 'computed_torque', '--index', '2.5', '--budget', '100000']
+    assert main([*tune, '--runs', str(a_file)]) == 2
+    assert f'{a_file} is not a folder' in capsys.readouterr().err
+    assert main([*tune, '--runs', str(tmp_path / 'runs'), '--out', str(tmp_path / 'missing' / 'gains.yaml')]) == 2
+    assert 'does not exist' in capsys.readouterr().err
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15', '--ros',
+                 '--bag', str(a_file / 'bag')]) == 2
+    assert f'{a_file} is a file, not a folder' in capsys.readouterr().err
+    assert not (tmp_path / 'runs').exists()
+
+
+def test_the_tuner_refuses_an_output_root_that_is_a_file(tmp_path):
+    a_file = tmp_path / 'a_file'
+    a_file.write_text('')
+    done = subprocess.run([str(DDARM), 'tuner', '--ros-args', '-p', 'kp:=[1.0,2.0,3.0]', '-p', 'kv:=[1.0,2.0,3.0]',
+                           '-p', f'output_root:={a_file}'], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and 'is not a folder' in done.stderr and 'Traceback' not in done.stderr, done.stderr
