@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ddarm_control.laws import GainError
+
 
 def omega_rule_pd_gravity(mass_diagonal: np.ndarray, omega) -> tuple[np.ndarray, np.ndarray]:
     """(2.3): k_p^i = m_ii ω², k_v^i = 2 m_ii ω; `omega` may carry leading batch axes."""
@@ -51,7 +53,7 @@ def smallest_omega(error_per_unit_kp: np.ndarray, gain_scale: np.ndarray,
     """
     permitted = np.asarray(permitted_error, dtype=float)
     if np.any(permitted <= 0) or not np.all(np.isfinite(permitted)):
-        raise ValueError(f'permitted errors must be finite and positive, got {permitted_error!r}')
+        raise GainError(f'permitted errors must be finite and positive, got {permitted_error!r}')
     return float(np.sqrt(np.max(np.abs(error_per_unit_kp) / (gain_scale * permitted))))
 
 

@@ -11,13 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.model import Arm
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')
 MAX_DELAY = 100
 
 
-class GainError(ValueError):
+class GainError(DdarmError, ValueError):
     """Gains or a delay that a controller refuses; the old ones stay in force."""
 
 

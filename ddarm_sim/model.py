@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ddarm_sim.errors import DdarmError
+
 URDF_NAME = 'ddarm.urdf'
 
 
-class ModelError(ValueError):
+class ModelError(DdarmError, ValueError):
     """A URDF or model option that cannot describe the arm."""
 
 

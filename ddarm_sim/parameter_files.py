@@ -18,6 +18,8 @@ from collections.abc import Sequence
 
 import yaml
 
+from ddarm_sim.errors import DdarmError
+
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
 PARAMETERS_KEY = 'ros__parameters'
 # rcl flags that take the next argument as their value (which is then not a flag of its own).
@@ -25,7 +27,7 @@ _FLAGS_WITH_VALUE = {'-r', '--remap', '-p', '--param', PARAMS_FILE, '-e', '--enc
                      '--log-config-file', '--log-file-name'}
 
 
-class ParameterFileError(ValueError):
+class ParameterFileError(DdarmError, ValueError):
     """A parameter file that cannot configure the node; the text names the file."""
 
 

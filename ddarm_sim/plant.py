@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.model import Arm
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
@@ -19,7 +20,7 @@ DEFAULT_MAX_VELOCITY = 1000.0  # rad/s
 MAX_SUBSTEPS = 10_000
 
 
-class PlantError(ValueError):
+class PlantError(DdarmError, ValueError):
     """A plant option or input that the plant refuses."""
 
 

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
+
 # Refused before any work (FAULTS.md 6): far beyond the joint count of any arm we run.
 MAX_JOINTS = 64
 
 
-class MessageError(ValueError):
+class MessageError(DdarmError, ValueError):
     """A message that cannot be used as it is; the text names the problem."""
 
 

@@ -6,7 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.model import Arm
+
+
+class MotionError(DdarmError, ValueError):
+    """A programmed motion or sampling that cannot be used; the text names the problem."""
+
 
 # Sample instants land on T/2 and T only up to rounding (0.01 * 50): within this
 # relative distance of a phase boundary the later phase applies (MODEL.md 5).
@@ -23,9 +29,9 @@ class ProgrammedMotion:
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.duration) and self.duration > 0):
-            raise ValueError(f'duration must be finite and positive, got {self.duration!r}')
+            raise MotionError(f'duration must be finite and positive, got {self.duration!r}')
         if np.shape(self.q0) != np.shape(self.qf) or np.ndim(self.q0) != 1:
-            raise ValueError(f'q0 and qf must be vectors of one length, got {self.q0!r} and {self.qf!r}')
+            raise MotionError(f'q0 and qf must be vectors of one length, got {self.q0!r} and {self.qf!r}')
 
     @property
     def dof(self) -> int:
@@ -60,7 +66,7 @@ TRAJECTORY_ENDPOINTS = {
 def paper_trajectory(number: int, duration: float) -> ProgrammedMotion:
     """Trajectory 1 or 2 of the paper's section 3, of duration T."""
     if number not in TRAJECTORY_ENDPOINTS:
-        raise ValueError(f'trajectory must be one of {sorted(TRAJECTORY_ENDPOINTS)}, got {number!r}')
+        raise MotionError(f'trajectory must be one of {sorted(TRAJECTORY_ENDPOINTS)}, got {number!r}')
     q0, qf = TRAJECTORY_ENDPOINTS[number]
     return ProgrammedMotion(np.array(q0), np.array(qf), float(duration))
 
@@ -68,11 +74,11 @@ def paper_trajectory(number: int, duration: float) -> ProgrammedMotion:
 def sample_count(duration: float, period: float) -> int:
     """k_max = T / Δ of (2.5); T must be a whole number of sampling periods."""
     if not (np.isfinite(period) and period > 0):
-        raise ValueError(f'sampling period must be finite and positive, got {period!r}')
+        raise MotionError(f'sampling period must be finite and positive, got {period!r}')
     ratio = duration / period
     k_max = int(round(ratio))
     if k_max < 1 or abs(ratio - k_max) > 1e-9 * max(1.0, ratio):
-        raise ValueError(f'duration {duration} s is not a whole number of sampling periods {period} s')
+        raise MotionError(f'duration {duration} s is not a whole number of sampling periods {period} s')
     return k_max
 
 

@@ -21,6 +21,7 @@ import numba
 import numpy as np
 import pinocchio as pin
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.model import ModelError
 from ddarm_sim.plant import PlantOptions
 from ddarm_sim.trajectory import paper_trajectory
@@ -49,7 +50,7 @@ _JOINT_KINDS = {
 }
 
 
-class BatchError(ValueError):
+class BatchError(DdarmError, ValueError):
     """Batch inputs the engine refuses."""
 
 

@@ -12,8 +12,8 @@ import time
 import numpy as np
 
 from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.model import ModelError
-from ddarm_sim.plant import DEFAULT_SUBSTEPS, PlantError
+from ddarm_sim.errors import DdarmError
+from ddarm_sim.plant import DEFAULT_SUBSTEPS
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 from ddarm_tuner.bench import add_bench_parser
 from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
@@ -449,8 +449,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f'ddarm {args.command}: {stop}; stopped cleanly (bags under way marked incomplete)',
               file=sys.stderr, flush=True)
         return stop.exit_code
-    except (EpisodeError, ModelError, PlantError, ValueError, RuntimeError, OSError) as error:
+    except DdarmError as error:  # refused input or an untrustworthy run; anything else is a bug: its traceback shows
         print(f'ddarm {args.command}: {error}', file=sys.stderr)
+        return 2
+    except OSError as error:  # a path the user gave that the system refuses (permissions, a full disk)
+        print(f'ddarm {args.command}: {error.filename or ""}: {error.strerror or error}', file=sys.stderr)
         return 2
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
 from ddarm_control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_gains, make_law)
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.plant import DEFAULT_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
 from ddarm_sim.trajectory import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
@@ -20,7 +21,7 @@ from ddarm_tuner.indices import index_3_2
 MAX_SAMPLES = 1_000_000
 
 
-class EpisodeError(ValueError):
+class EpisodeError(DdarmError, ValueError):
     """An episode specification that cannot be run."""
 
 

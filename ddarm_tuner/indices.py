@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
+
 # S_i = 360/2π: errors in radians weigh as degrees.
 DEGREES_PER_RADIAN = 360.0 / (2.0 * np.pi)
 # R_i makes a torque deviation of 10 % of the joint's largest nominal torque weigh as 1°.
 TORQUE_WEIGHT_PERCENT = 10.0
 
 
-class IndicesError(ValueError):
+class IndicesError(DdarmError, ValueError):
     """Samples the indices cannot be computed from."""
 
 

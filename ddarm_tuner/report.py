@@ -18,6 +18,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
+from ddarm_sim.errors import DdarmError
 from ddarm_tuner.bags import BagEpisode, read_episode_bag
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')
@@ -53,7 +54,7 @@ PAPER_TABLE4_KEYS = ('I', 'I1', 'I2')
 INDEX_KEYS = {'2.5': 'I1', '3.2': 'I'}
 
 
-class ReportError(ValueError):
+class ReportError(DdarmError, ValueError):
     """A results dict the report cannot be made from, or an output that exists already; the text says which."""
 
 

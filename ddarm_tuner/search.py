@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import cma
 import numpy as np
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.trajectory import paper_trajectory
 from ddarm_tuner.batch import simulate_batch
 from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega, plan_episode
@@ -34,7 +35,7 @@ NM_XTOL = 1e-4
 NM_FTOL = 1e-10
 
 
-class SearchError(ValueError):
+class SearchError(DdarmError, ValueError):
     """A search specification that cannot be run."""
 
 

@@ -104,3 +104,16 @@ def test_the_tuner_refuses_an_output_root_that_is_a_file(tmp_path):
     done = subprocess.run([str(DDARM), 'tuner', '--ros-args', '-p', 'kp:=[1.0,2.0,3.0]', '-p', 'kv:=[1.0,2.0,3.0]',
                            '-p', f'output_root:={a_file}'], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and 'is not a folder' in done.stderr and 'Traceback' not in done.stderr, done.stderr
+
+
+def test_a_bug_is_not_dressed_as_a_refusal(monkeypatch):
+    """Only ddarm's named errors (DdarmError) and the system's refusals of paths become exit 2: a bug keeps
+    its traceback."""
+    import ddarm_tuner.cli as cli
+
+    def broken(spec):
+        raise ValueError('a bug')
+
+    monkeypatch.setattr(cli, 'run_episode', broken)
+    with pytest.raises(ValueError, match='a bug'):
+        main(['episode', '--controller', 'computed_torque', '--omega', '15'])
