@@ -208,13 +208,15 @@ class PlantNode(Node):
     def _watch(self) -> None:
         now = time.monotonic()
         if self.phase == STARTING:
-            if self.state_publisher.get_subscription_count() >= self.settings.required_subscribers:
+            listeners = self.state_publisher.get_subscription_count()
+            # Matching runs both ways on its own: a command publisher not matched yet would lose sample 0's command.
+            commanders = self.command_subscription.get_publisher_count()
+            if listeners >= self.settings.required_subscribers and commanders >= 1:
                 self._begin()
             elif now > self.deadline:
                 self._end(DiagnosticStatus.ERROR, 'no_start',
-                          f'no start: {self.state_publisher.get_subscription_count()} of '
-                          f'{self.settings.required_subscribers} joint_states subscribers within '
-                          f'{self.settings.command_timeout} s')
+                          f'no start: {listeners} of {self.settings.required_subscribers} joint_states subscribers '
+                          f'and {commanders} effort_command publishers within {self.settings.command_timeout} s')
         elif self.phase == RUNNING and self.settings.mode == 'lockstep' and now > self.deadline:
             self._end(DiagnosticStatus.ERROR, 'timeout', f'no command for sample {self.plant.sample} '
                       f'(t = {self.plant.time:.6f} s) within {self.settings.command_timeout} s')

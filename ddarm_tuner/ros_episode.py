@@ -30,6 +30,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ddarm_control.laws import CONTROLLERS
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.lifetime import child_environment
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
@@ -69,7 +70,7 @@ FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicat
                     'realtime': ('refused_commands', 'duplicate_commands')}
 
 
-class GraphEpisodeError(RuntimeError):
+class GraphEpisodeError(DdarmError, RuntimeError):
     """An episode over ROS that did not complete; the text says which sample and why."""
 
 
@@ -416,7 +417,8 @@ class GraphDriver(Node):
         plant = self.node_name(self.plant_node)
         if (mode == 'realtime' or self.recording.owed_by_plant()) and waited > max(PLANT_STALL_TIMEOUT,
                                                                                      5 * self.period):
-            return f'the plant {plant} published nothing for {waited:.1f} s ({self.recording.heard()}): did it die?'
+            return (f'the plant {plant} published nothing for {waited:.1f} s ({self.recording.heard()}): did it '
+                    'die, or not hear the command?')
         if waited > STALL_TIMEOUT:
             return f'nothing heard for {waited:.1f} s ({self.recording.heard()}); {self._controller_note()}'
         return None
@@ -669,8 +671,14 @@ class GraphSession:
     def __enter__(self) -> GraphSession:
         return self
 
-    def __exit__(self, *exception) -> None:
-        self.close()
+    def __exit__(self, kind, error, traceback) -> None:
+        if error is None:
+            self.close()
+            return
+        try:  # a failure to stop cleanly must not hide why the session ended
+            self.close()
+        except Exception as cleanup:
+            error.add_note(f'while closing the graph session: {type(cleanup).__name__}: {cleanup}')
 
 
 def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storage: str = 'mcap',

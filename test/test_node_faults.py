@@ -36,14 +36,17 @@ def spin_until(executor, condition, timeout=30.0):
 
 
 class Listener:
-    """A node that hears the plant's diagnostics (and counts as a joint_states subscriber)."""
+    """A node that hears the plant's diagnostics (and counts as a joint_states subscriber); without a controller
+    it can stand in for one's command publisher: the plant starts once one matches."""
 
-    def __init__(self, context, executor, namespace=''):
+    def __init__(self, context, executor, namespace='', command_publisher=False):
         self.node = rclpy.create_node('listener', namespace=namespace, context=context)
         self.statuses = []
         self.node.create_subscription(DiagnosticArray, '/diagnostics', lambda msg: self.statuses.extend(msg.status),
                                       DIAGNOSTICS_QOS)
         self.node.create_subscription(JointState, 'joint_states', lambda msg: None, SAMPLE_QOS)
+        if command_publisher:
+            self.node.create_publisher(JointState, 'effort_command', SAMPLE_QOS)
         executor.add_node(self.node)
 
     def values(self):
@@ -133,7 +136,7 @@ def test_a_second_command_for_a_sample_is_counted_and_diagnostics_name_the_plant
         {'mode': 'realtime', 'period': period, 'max_samples': 3}))
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(plant)
-    listener = Listener(ros_context, executor, namespace='/arm')
+    listener = Listener(ros_context, executor, namespace='/arm', command_publisher=True)
     try:
         spin_until(executor, lambda: plant.phase == RUNNING)
         # Called directly, with the executor still: no real-time tick can fall between the two.
