@@ -25,9 +25,10 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
+from ddarm_sim.errors import DdarmError
 from ddarm_sim.samples import MessageError, joint_order, sample_at
 from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, score
-from ddarm_tuner.interrupts import critical_section
+from ddarm_tuner.interrupts import Interrupted, critical_section
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -48,7 +49,7 @@ EPISODE_KEY = 'ddarm.episode'
 PUBLISHERS_KEY = 'ddarm.publishers'
 
 
-class BagError(ValueError):
+class BagError(DdarmError, ValueError):
     """A bag that cannot be written where asked, or cannot be scored; the text names the problem."""
 
 
@@ -149,7 +150,8 @@ def child_path(folder: Path | str, name: str) -> Path:
 
 
 def _close_abandoned(writer: Writer) -> None:
-    with suppress(OSError, sqlite3.Error, WriterError):
+    # A stop raised in a finaliser would be lost with the close; it waits, and is raised at the next check.
+    with suppress(OSError, sqlite3.Error, WriterError, Interrupted), critical_section():
         writer.set_custom_data(STATUS_KEY, 'incomplete')
         writer.close()
 
@@ -179,7 +181,16 @@ class EpisodeBagWriter:
         self.failure: str | None = None
         self.writer: Writer | None = None
         text = json.dumps(episode, sort_keys=True)
-        # A stop during the opening waits for its end, then drops the writer, which closes it incomplete.
+        try:
+            self._open(storage, profiles, text)
+        except BaseException:
+            abandoned = getattr(self, '_abandoned', None)
+            if abandoned is not None and self.failure is None:
+                abandoned()  # closed now, marked incomplete, not when the exception is collected
+            raise
+
+    def _open(self, storage: str, profiles: dict, text: str) -> None:
+        # A stop during the opening waits for its end; the caller then closes the bag incomplete.
         with critical_section(), self._writing():
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.writer = Writer(self.path, version=Writer.VERSION_LATEST, storage_plugin=STORAGES[storage])

@@ -101,12 +101,15 @@ class RunFolder:
     def __exit__(self, kind, error, traceback) -> None:
         if kind is None:
             return
-        if issubclass(kind, (Interrupted, KeyboardInterrupt)):
-            self.log.info('%s', error or 'interrupted')
-            self.finish('interrupted')
-        else:
-            self.log.error('%s: %s', kind.__name__, error)
-            self.finish('failed', error=f'{kind.__name__}: {error}')
+        try:  # a summary that cannot be written must not hide why the run ended
+            if issubclass(kind, (Interrupted, KeyboardInterrupt)):
+                self.log.info('%s', error or 'interrupted')
+                self.finish('interrupted')
+            else:
+                self.log.error('%s: %s', kind.__name__, error)
+                self.finish('failed', error=f'{kind.__name__}: {error}')
+        except Exception as cleanup:
+            error.add_note(f'while marking the run folder {self.path}: {type(cleanup).__name__}: {cleanup}')
 
     def _write_summary(self) -> None:
         partial = self.path / 'summary.json.partial'

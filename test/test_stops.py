@@ -27,7 +27,7 @@ def started_episode(tmp_path):
 def test_a_signal_stops_an_episode_cleanly(tmp_path, signum):
     process, nodes = started_episode(tmp_path)
     err = interrupt(process, signum)
-    assert process.returncode == 128 + signum
+    assert process.returncode == 128 + signum, err
     assert 'Traceback' not in err and len(err.strip().splitlines()) == 1, err
     assert signal.Signals(signum).name in err
     wait_for(lambda: not any(alive(pid) for pid in nodes), 10, 'the node processes ended')
