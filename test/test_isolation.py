@@ -2,6 +2,7 @@
 and a foreign node on a hand-started graph fails the episode, naming it."""
 
 import json
+import time
 
 import pytest
 import rclpy
@@ -78,6 +79,21 @@ def hand_started(tmp_path):
     stop(processes)
 
 
+def wait_for_graph(context, condition, timeout=30.0):
+    """Until `condition(node names and namespaces)` holds on the graph."""
+    node = rclpy.create_node('graph_watch', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + timeout
+        while not condition(node.get_node_names_and_namespaces()):
+            assert time.monotonic() < deadline, 'the graph never got there'
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+
+
 def assert_episode_fails(context, problem, *others, peer_timeout=5.0):
     """The tuner's first episode, with `others` (intruder nodes) spun beside it, fails matching `problem`."""
     node = TunerNode(context=context, parameter_overrides=[Parameter('kp', value=KP), Parameter('kv', value=KV)])
@@ -97,11 +113,11 @@ def assert_episode_fails(context, problem, *others, peer_timeout=5.0):
     ('computed_torque', '2 nodes are named /computed_torque: a second controller'),
     ('pd_gravity', '/pd_gravity is running too: two laws would answer the same states'),
 ])
-
-
 def test_a_second_controller_fails_the_episode_naming_it(ros_context, hand_started, tmp_path, law, problem):
     hand_started.append(start_node(['ddarm_control.node', law, '--ros-args', '-p', f'kp:={KP}', '-p', f'kv:={KV}'],
                                    tmp_path / 'second.log'))
+    # Only once it is on the graph: an episode that ends before the second node joins is a good one.
+    wait_for_graph(ros_context, lambda nodes: nodes.count((law, '/')) == (2 if law == 'computed_torque' else 1))
     assert_episode_fails(ros_context, problem)
 
 
@@ -183,8 +199,6 @@ def state_ahead(node, msg):
                         "|/reference is published by \\['/tuner', '/visitor'\\]"),
     (state_ahead, r'a joint state for sample \d+ where sample \d+ was due'),
 ])
-
-
 def test_a_node_that_meddles_once_during_the_episode_fails_it(ros_context, hand_started, act, problem):
     """Services and one-shot publishers slip past any graph check: the controller's configuration count
     and the order of the states give them away."""
