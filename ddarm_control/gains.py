@@ -12,11 +12,23 @@ import numpy as np
 
 from ddarm_control.laws import GainError
 
+# The ω of the ω-rule gains the searches start from: around the paper's ω = 15, on both sides.
+SEARCH_START_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
+
 
 def omega_rule_pd_gravity(mass_diagonal: np.ndarray, omega) -> tuple[np.ndarray, np.ndarray]:
     """(2.3): k_p^i = m_ii ω², k_v^i = 2 m_ii ω; `omega` may carry leading batch axes."""
     omega = np.asarray(omega, dtype=float)[..., None]
     return mass_diagonal * omega**2, 2.0 * mass_diagonal * omega
+
+
+def omega_rule_gains(law: str, model, omega: float, final_position=None) -> tuple[np.ndarray, np.ndarray]:
+    """The ω rule of `law` for the controller's `model` (an Arm); PD + gravity takes m_ii at q_f = `final_position`."""
+    if law == 'computed_torque':
+        return omega_rule_computed_torque(model.dof, omega)
+    if final_position is None:
+        raise GainError('the PD + gravity ω rule needs the final position q_f')
+    return omega_rule_pd_gravity(np.diag(model.mass_matrix(final_position)), omega)
 
 
 def omega_rule_computed_torque(dof: int, omega) -> tuple[np.ndarray, np.ndarray]:

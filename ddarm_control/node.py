@@ -16,7 +16,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
+from ddarm_control.gains import omega_rule_gains
 from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint,
                                 SampledController, checked_delay, checked_gains, make_law)
 from ddarm_sim.model import Arm, ModelError
@@ -39,11 +39,9 @@ def effective_gains(law: str, values: dict, model: Arm, reference: Reference | N
         if values['kp'] is None or values['kv'] is None:
             raise GainError('set kp and kv (one per joint), or omega > 0')
         return checked_gains(values['kp'], values['kv'], model.dof)
-    if law == 'computed_torque':
-        return omega_rule_computed_torque(model.dof, omega)
-    if reference is None:
+    if law == 'pd_gravity' and reference is None:
         return None  # the PD + gravity rule needs q_f: decided when the reference arrives
-    return omega_rule_pd_gravity(np.diag(model.mass_matrix(reference.q[-1])), omega)
+    return omega_rule_gains(law, model, omega, None if reference is None else reference.q[-1])
 
 
 class ControllerNode(Node):

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from ddarm_control.gains import SEARCH_START_OMEGAS
 from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.errors import DdarmError
 from ddarm_sim.plant import DEFAULT_SUBSTEPS
@@ -405,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument('--method', choices=('nelder-mead', 'cma'), default='nelder-mead',
                       help='multi-start Nelder-Mead (the paper-style default) or CMA-ES')
     tune.add_argument('--budget', type=int, default=3000, help='most episodes evaluated (3000)')
-    tune.add_argument('--omegas', type=_finite, nargs='+', default=[8.0, 12.0, 15.0, 20.0, 30.0],
+    tune.add_argument('--omegas', type=_finite, nargs='+', default=list(SEARCH_START_OMEGAS),
                       metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
     tune.add_argument('--seed', type=int, default=0, help="CMA-ES's random seed (0)")
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')

@@ -7,7 +7,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ddarm_control.gains import omega_rule_computed_torque, omega_rule_pd_gravity
+from ddarm_control.gains import omega_rule_gains
 from ddarm_control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_gains, make_law)
 from ddarm_sim.errors import DdarmError
@@ -175,12 +175,10 @@ def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
     """The ω rule of section 2 for `controller`; PD + gravity takes m_ii of the model at q_f."""
     if not (np.isfinite(omega) and omega > 0):
         raise EpisodeError(f'omega must be finite and positive, got {omega!r}')
-    model = load_arm(urdf)
-    if controller == 'computed_torque':
-        return omega_rule_computed_torque(model.dof, omega)
-    if final_position is None:
-        raise EpisodeError('the PD + gravity ω rule needs the final position q_f')
-    return omega_rule_pd_gravity(np.diag(model.mass_matrix(final_position)), omega)
+    try:
+        return omega_rule_gains(controller, load_arm(urdf), omega, final_position)
+    except GainError as error:
+        raise EpisodeError(str(error)) from error
 
 
 def check_episode(spec: EpisodeSpec) -> EpisodePlan:

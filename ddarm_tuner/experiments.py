@@ -11,12 +11,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ddarm_control.gains import largest_stable_omega, omega_rule_computed_torque
+from ddarm_control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega_rule_computed_torque
+from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.trajectory import paper_trajectory
 from ddarm_tuner.bags import checked_output_path
 from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega
-from ddarm_tuner.procedures import omega_procedure
 from ddarm_tuner.batch import simulate_batch
+from ddarm_tuner.procedures import omega_procedure
 from ddarm_tuner.search import INDICES, omega_starts, search_gains
 from ddarm_tuner.tune import with_gains
 
@@ -24,8 +25,6 @@ if TYPE_CHECKING:  # the episodes run through a ROS session; the claims and tabl
     from ddarm_tuner.ros_episode import GraphSession
 
 PAPER_DELAYS = {'pd_gravity': 0, 'computed_torque': 1}
-CONTROLLERS = ('pd_gravity', 'computed_torque')
-START_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
 # Table 4's cases: (trajectory, T, Δ).
 TABLE4_CASES = ((1, 1.0, 0.01), (1, 1.0, 0.02), (1, 0.5, 0.01), (2, 1.0, 0.01))
 # Sampling periods for the stability check: each divides T = 1 s.
@@ -99,7 +98,7 @@ def _template(controller: str, trajectory: int = 1, duration: float = 1.0, perio
 def optimise(template: EpisodeSpec, index: str, budget: Budget) -> dict:
     """Multi-start Nelder-Mead from the ω-rule gains (it finds the basin quickly in small batches), then
     CMA-ES from its best point (large batches, finer): the lower of the two."""
-    start_kp, start_kv = omega_starts(template, START_OMEGAS)
+    start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
     started = time.perf_counter()
     simplex = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv,
                            budget=budget.search_episodes // 3, method='nelder-mead')
@@ -131,7 +130,7 @@ class Reproduction:
                               'started': time.strftime('%Y-%m-%dT%H:%M:%S%z'),
                               'settings': {'paper_delays': PAPER_DELAYS, 'search_budget': budget.search_episodes,
                                            'cma_popsize': budget.cma_popsize, 'taus': list(budget.taus),
-                                           'start_omegas': list(START_OMEGAS)},
+                                           'start_omegas': list(SEARCH_START_OMEGAS)},
                               'gains': [], 'table2': [], 'table3': [], 'table4': [],
                               'section2': {'omega_rules': [], 'omega_procedure': [], 'stability': []},
                               'reconstruction': RECONSTRUCTION}

@@ -18,10 +18,10 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
+from ddarm_control.laws import CONTROLLERS
 from ddarm_sim.errors import DdarmError
 from ddarm_tuner.bags import BagEpisode, read_episode_bag
 
-CONTROLLERS = ('pd_gravity', 'computed_torque')
 CONTROLLER_NAMES = {'pd_gravity': 'PD + gravity', 'computed_torque': 'computed torque'}
 COLOURS = {'pd_gravity': 'tab:blue', 'computed_torque': 'tab:red'}
 JOINT_ROLES = ('base', 'shoulder', 'elbow')

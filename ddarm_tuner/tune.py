@@ -7,11 +7,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ddarm_control.gains import SEARCH_START_OMEGAS
 from ddarm_tuner.episodes import EpisodeSpec, run_episode
 from ddarm_tuner.search import SearchResult, omega_starts, search_gains
 
-# Start pulsatances for the ω rules (section 2): around the paper's ω = 15, on both sides.
-DEFAULT_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
 INDEX_KEYS = {'2.5': 'I1', '3.2': 'I'}
 
 
@@ -30,7 +29,7 @@ class Tuning:
         return self.search.episodes / self.wall_time_s
 
 
-def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=DEFAULT_OMEGAS,
+def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEARCH_START_OMEGAS,
          seed: int = 0) -> Tuning:
     """Minimise `index` from the ω-rule gains at each ω of `omegas`; the best gains are re-run by the scalar path."""
     start_kp, start_kv = omega_starts(template, omegas)
