@@ -268,7 +268,7 @@ class GraphDriver(Node):
             if others or len(heard[topic]) > 1:
                 foreign.append(f'{resolved} is published by {sorted(heard[topic])}; only {owner} may publish it '
                                f'(foreign: {sorted(set(others))})')
-            elif not heard[topic] or heard[topic] != [owner]:
+            elif heard[topic] != [owner]:
                 missing.append(f'nobody known publishes {resolved} (expected {owner}; heard {heard[topic]})')
         return foreign, missing
 
