@@ -139,10 +139,6 @@ class EpisodeResult:
         return self.plan.q_ref[:len(self.q)] - self.q
 
     @property
-    def error_rates(self) -> np.ndarray:
-        return self.plan.v_ref[:len(self.v)] - self.v
-
-    @property
     def diverged(self) -> bool:
         return self.diverged_at is not None
 
