@@ -21,7 +21,7 @@ from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, 
                                 SampledController, checked_delay, checked_gains, make_law)
 from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                     SAMPLE_QOS, Reference, descriptor, joint_state_msg,
+                                     SAMPLE_QOS, Reference, descriptor, joint_state_msg, plain_parameters,
                                      proposed_values, read_joint_state, read_reference,
                                      refuse_undeclared_parameters, run_node, undeclared_overrides)
 from ddarm_sim.samples import MessageError
@@ -197,7 +197,7 @@ class ControllerNode(Node):
             'delay': self.controller.delay, 'period': self.period,
             'reference_samples': 0 if self.reference is None else len(self.reference.times),
             'reference_final': None if self.reference is None else self.reference.q[-1].tolist(),
-            'configuration': self.configuration})
+            'parameters': plain_parameters(proposed_values(self, ())), 'configuration': self.configuration})
         return response
 
     def _on_state(self, msg: JointState) -> None:

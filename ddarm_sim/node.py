@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 
@@ -20,8 +21,9 @@ from ddarm_sim.model import Arm, ModelError
 from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
 from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
-                                     descriptor, joint_state_msg, proposed_values, read_joint_state,
-                                     refuse_undeclared_parameters, run_node, time_msg, undeclared_overrides)
+                                     descriptor, joint_state_msg, plain_parameters, proposed_values,
+                                     read_joint_state, refuse_undeclared_parameters, run_node, time_msg,
+                                     undeclared_overrides)
 from ddarm_sim.samples import MessageError
 from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
 
@@ -180,8 +182,13 @@ class PlantNode(Node):
     # Episodes --------------------------------------------------------------------------------
 
     def start_episode(self) -> str:
-        """Back to t = 0 at the configured start state; sample 0 goes out once subscribers match."""
-        self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        """Back to t = 0 at the configured start state; sample 0 goes out once subscribers match.
+
+        Returns JSON: a `message` for people and the `parameters` the episode runs with, so that
+        whoever reset the plant can tell whether another node changed them first.
+        """
+        values = self._parameter_values()
+        self.settings = plant_settings(values, self.arm.dof)
         arm = self.arm if self.settings.mass_scale is None else Arm.from_urdf(
             self.arm.urdf_path, self.settings.mass_scale)
         self.plant = Plant(arm, self.settings.options, self.settings.q0, self.settings.v0)
@@ -193,8 +200,9 @@ class PlantNode(Node):
             self.realtime_timer = None
         self.phase = STARTING
         self.deadline = time.monotonic() + self.settings.command_timeout
-        return (f'episode starts in {self.settings.mode} mode once {self.settings.required_subscribers} '
-                f'subscriber(s) listen on {self.state_publisher.topic_name}')
+        message = (f'episode starts in {self.settings.mode} mode once {self.settings.required_subscribers} '
+                   f'subscriber(s) listen on {self.state_publisher.topic_name}')
+        return json.dumps({'message': message, 'parameters': plain_parameters(values)})
 
     def _on_reset(self, request, response):
         try:

@@ -6,6 +6,7 @@ number reaches the core.
 
 from __future__ import annotations
 
+import array
 import math
 import sys
 from dataclasses import dataclass
@@ -209,6 +210,12 @@ def proposed_values(node, changes) -> dict:
     values = {name: parameter.value for name, parameter in node.get_parameters_by_prefix('').items()}
     values.update({parameter.name: parameter.value for parameter in changes})
     return values
+
+
+def plain_parameters(values: dict) -> dict:
+    """Parameter values as JSON takes them (arrays as lists), for replies that say what a node runs with."""
+    return {name: list(value) if isinstance(value, (list, tuple, array.array)) else value
+            for name, value in values.items()}
 
 
 def parameter_file_refusal(parameter_files: dict, name: str) -> ParameterFileError | None:

@@ -187,6 +187,7 @@ def _write_gains(run, args, kp, kv, spec: EpisodeSpec, provenance: str) -> list[
 
 
 def command_omega(args: argparse.Namespace) -> int:
+    from ddarm_tuner.episodes import check_episode
     from ddarm_tuner.procedures import omega_procedure
 
     if args.mass_error is not None and args.mass_scale is not None:
@@ -195,10 +196,17 @@ def command_omega(args: argparse.Namespace) -> int:
         raise EpisodeError('give --disturbance or --external-torque, not both')
     _check_outputs(args)
     spec = episode_spec(args)
+    dof = len(spec.kp)
+    for name, values in (('--max-error', args.max_error), ('--disturbance', args.disturbance),
+                         ('--mass-error', args.mass_error)):
+        if values is not None and len(values) != dof and not (name == '--max-error' and len(values) == 1):
+            raise EpisodeError(f'{name} needs {"one value or " if name == "--max-error" else ""}{dof} values '
+                               f'(one per joint), got {len(values)}')
     if args.mass_error is not None:
         spec = dataclasses.replace(spec, mass_scale=tuple(1.0 + e for e in args.mass_error))
     if args.disturbance is not None:
         spec = dataclasses.replace(spec, external_torque=tuple(args.disturbance))
+    check_episode(spec)
     choice = omega_procedure(spec, np.radians(args.max_error), args.torque_factor, args.omega_step,
                              args.omega_max)
     with _run_folder(args, 'omega') as run:

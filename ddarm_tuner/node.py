@@ -84,7 +84,7 @@ class TunerNode(GraphDriver):
                     document = yaml.safe_load(file)
                 gains = document[values['controller']]['ros__parameters']
                 return gains['kp'], gains['kv'], gains.get('compute_delay_steps', values['delay'])
-            except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
+            except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as error:  # ValueError: not UTF-8
                 raise EpisodeError(f"gains_file {values['gains_file']}: no {values['controller']} kp/kv "
                                    f'({type(error).__name__}: {error})') from error
         if values['kp'] is None or values['kv'] is None:

@@ -72,6 +72,9 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     error_unit, gain_scale = steady_state_error_per_unit_gain(spec)
     permitted = np.broadcast_to(np.asarray(permitted_error, dtype=float), error_unit.shape)
     omega_min = smallest_omega(error_unit, gain_scale, permitted)
+    if not np.any(error_unit):
+        raise EpisodeError('no external torque and no mass mismatch: the steady-state errors are zero at every ω, '
+                           'so the permitted error bounds nothing (give a disturbance and/or a mass error)')
     final = paper_trajectory(spec.trajectory, spec.duration).qf
     unlimited = dataclasses.replace(spec, torque_limit='none')
     steps, chosen, chosen_gains = [], None, (None, None)

@@ -473,12 +473,11 @@ class GraphDriver(Node):
                     self.recording.fail(stalled)
 
         parameters = node_parameters(spec, plan, mode)
-        self._configure(executor, self.plant_node,
-                        _service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL), deadline,
-                        watching)
-        self._configure(executor, spec.controller,
-                        _service_parameters(parameters[spec.controller]['ros__parameters'],
-                                            CONTROLLER_OPTIONAL), deadline, watching)
+        plant_parameters = _service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
+        controller_parameters = _service_parameters(parameters[spec.controller]['ros__parameters'],
+                                                    CONTROLLER_OPTIONAL)
+        self._configure(executor, self.plant_node, plant_parameters, deadline, watching)
+        self._configure(executor, spec.controller, controller_parameters, deadline, watching)
         self.period, self.bag = spec.period, bag
         self._peer_missing_since = None
         try:
@@ -492,6 +491,7 @@ class GraphDriver(Node):
                     break
                 executor.spin_once(timeout_sec=0.01)
             configuration = state['configuration']
+            self._check_started_with(spec.controller, controller_parameters, state['parameters'])
             self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
                              'the messages of the last episode to drain', watching)
             self.recording = Recording(plan.k_max, spec.controller)
@@ -499,6 +499,7 @@ class GraphDriver(Node):
             reply = self._reset(executor, self.plant_node, deadline, watching)
             if not reply.success:
                 raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
+            self._check_started_with(self.plant_node, plant_parameters, json.loads(reply.message)['parameters'])
             self.recording.last_heard = time.monotonic()
             self._spin_until(executor, lambda: self.recording.ended, deadline, 'the episode to end', watching)
             if self.recording.error:
@@ -520,9 +521,24 @@ class GraphDriver(Node):
         finally:
             self.recording, self.bag = None, None
 
+    def _check_started_with(self, node: str, sent: list[Parameter], reported: dict) -> None:
+        """The node runs the episode with the parameters this driver set, not ones another node set in between."""
+        changed = [f'{parameter.name} is {reported.get(parameter.name)!r}, not {parameter.value!r}'
+                   for parameter in sent if not _same_value(reported.get(parameter.name), parameter.value)]
+        if changed:
+            raise GraphEpisodeError(f'{self.node_name(node)} started the episode with parameters that another node '
+                                    f'set after this driver: {"; ".join(changed)}')
+
     def _watch_graph_now(self, law: str) -> None:
         self._next_graph_check = 0.0
         self._watch_graph(law)
+
+
+def _same_value(reported, sent) -> bool:
+    """A parameter as a node reports it (JSON) against the value set; an unset array reads as None or []."""
+    if isinstance(sent, (list, tuple)):
+        return list(reported or []) == list(sent)
+    return reported == sent
 
 
 def plant_counters(report: dict, names, plant: str) -> dict[str, int]:

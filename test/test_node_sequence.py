@@ -54,7 +54,7 @@ class Sequence:
 
 @pytest.fixture
 def sequence(ros_context, tmp_path, monkeypatch):
-    monkeypatch.setattr(ros_episode, 'COMMAND_TIMEOUT', 1.0)  # the plant gives up on a command after 1 s
+    monkeypatch.setattr(ros_episode, 'COMMAND_TIMEOUT', 3.0)  # the plant gives up on a command after 3 s
     graph = Sequence(ros_context, tmp_path)
     yield graph
     graph.close()

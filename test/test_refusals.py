@@ -117,3 +117,25 @@ def test_a_bug_is_not_dressed_as_a_refusal(monkeypatch):
     monkeypatch.setattr(cli, 'run_episode', broken)
     with pytest.raises(ValueError, match='a bug'):
         main(['episode', '--controller', 'computed_torque', '--omega', '15'])
+
+
+@pytest.mark.parametrize('arguments, problem', [
+    (['--max-error', '1', '1'], '--max-error needs one value or 3 values'),
+    (['--max-error', '1', '--disturbance', '1', '1'], '--disturbance needs 3 values'),
+    (['--max-error', '1', '--mass-error', '0.1'], '--mass-error needs 3 values'),
+    (['--max-error', '1'], 'the steady-state errors are zero at every ω'),
+])
+def test_omega_refuses_what_it_cannot_compute(capsys, tmp_path, arguments, problem):
+    extra = [] if '--disturbance' in arguments or '--mass-error' in arguments or arguments == ['--max-error', '1'] \
+        else ['--disturbance', '0', '20', '5']
+    assert main(['omega', '--controller', 'pd_gravity', *arguments, *extra, '--runs', str(tmp_path)]) == 2
+    assert problem in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_gains_file_that_is_not_text_is_refused(tmp_path):
+    gains = tmp_path / 'gains.yaml'
+    gains.write_bytes(b'\xff\xfe\x00binary')
+    done = subprocess.run([str(DDARM), 'tuner', '--ros-args', '-p', f'gains_file:={gains}',
+                           '-p', f'output_root:={tmp_path / "runs"}'], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and str(gains) in done.stderr and 'Traceback' not in done.stderr, done.stderr
