@@ -221,3 +221,29 @@ def test_a_forged_plant_report_is_a_named_failure_not_a_crash(ros_context, hand_
 
     intruder, _ = intruder_at_sample(ros_context, 5, forge)
     assert_episode_fails(ros_context, 'report of /plant does not parse', intruder)
+
+
+@pytest.mark.parametrize('target, parameter, value', [
+    ('plant', 'mass_scale', [2.0, 2.0, 2.0]),
+    ('computed_torque', 'coulomb_friction', [50.0, 50.0, 50.0]),
+])
+def test_parameters_another_node_sets_before_the_start_fail_the_episode(ros_context, hand_started, monkeypatch,
+                                                                       target, parameter, value):
+    """Set between the driver's configuration and the reset that starts the episode: the nodes' replies say
+    what they start with, and the driver compares."""
+    from rclpy.parameter_client import AsyncParameterClient
+
+    intruder = rclpy.create_node('meddler', context=ros_context)
+    client = AsyncParameterClient(intruder, target)
+    configure = TunerNode._configure
+
+    def configure_then_meddle(self, executor, node, parameters, deadline, alive):
+        configure(self, executor, node, parameters, deadline, alive)
+        if node == 'computed_torque':  # the driver's last configuration before the resets
+            future = client.set_parameters([Parameter(parameter, value=value)])
+            self._spin_until(executor, future.done, deadline, 'the meddler', alive)
+            assert future.result().results[0].successful
+
+    monkeypatch.setattr(TunerNode, '_configure', configure_then_meddle)
+    assert_episode_fails(ros_context, f'/{target} started the episode with parameters that another node set '
+                                      f'after this driver: {parameter} is', intruder)
