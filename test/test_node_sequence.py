@@ -81,22 +81,35 @@ def timeout(sequence):
     def stop_the_controller_at_sample_5():
         sequence.alive()
         recording = sequence.driver.recording
+        if recording is not None and recording.states:
+            last_state.append(max(recording.states))
         if not stopped and recording is not None and len(recording.states) > 5:
             controller.send_signal(signal.SIGSTOP)
             stopped.append(True)
+
+    last_state = []
+    answers = []
+    listener = rclpy.create_node('answers', context=sequence.context)
+    listener.create_subscription(JointState, 'effort_command', lambda msg: answers.append(msg.header.stamp), SAMPLE_QOS)
+    sequence.executor.add_node(listener)
 
     try:
         with pytest.raises(GraphEpisodeError, match='no command for sample'):
             sequence.episode(GOOD, alive=stop_the_controller_at_sample_5)
     finally:
         controller.send_signal(signal.SIGCONT)
-    # Its late answers to the stopped episode come once it runs again. The driver waits a short quiet
-    # period before each episode; a loaded machine may take longer to wake the controller, so wait for them.
-    driver = sequence.driver
-    deadline = time.monotonic() + 10
-    while time.monotonic() - driver.last_traffic < 1.0:
-        assert time.monotonic() < deadline, 'the controller kept publishing'
-        sequence.executor.spin_once(timeout_sec=0.05)
+    # Its late answers to the stopped episode come once it runs again, as late as the plant's next DDS
+    # heartbeat re-sends the states it missed (seconds): the next episode starts once the last is answered
+    # (one that lands in an episode fails it, as test_isolation shows).
+    last = round(last_state[-1] * GOOD.period, 9)
+    deadline = time.monotonic() + 30
+    try:
+        while not any(abs(stamp.sec + stamp.nanosec * 1e-9 - last) < 1e-9 for stamp in answers):
+            assert time.monotonic() < deadline, 'the controller never answered the stopped episode'
+            sequence.executor.spin_once(timeout_sec=0.05)
+    finally:
+        sequence.executor.remove_node(listener)
+        listener.destroy_node()
 
 
 def no_start(sequence):
