@@ -438,8 +438,8 @@ class GraphDriver(Node):
             alive()
             executor.spin_once(timeout_sec=0.05)
 
-    def _reset(self, executor, node: str, deadline: float, alive, clients=None):
-        client = (clients or self.reset_clients)[node]
+    def _trigger(self, executor, client, deadline: float, alive):
+        """Call a std_srvs/Trigger service (a node's reset or status) and wait for its reply."""
         self._spin_until(executor, client.service_is_ready, deadline, f'service {client.srv_name}', alive)
         future = client.call_async(Trigger.Request())
         self._spin_until(executor, future.done, deadline, f'a reply from {client.srv_name}', alive)
@@ -486,7 +486,8 @@ class GraphDriver(Node):
             expected = {'ready': True, 'kp': list(spec.kp), 'kv': list(spec.kv), 'delay': spec.delay,
                         'reference_samples': plan.k_max + 1, 'reference_final': plan.q_ref[-1].tolist()}
             while True:  # until the controller holds this episode's reference and gains
-                state = json.loads(self._reset(executor, spec.controller, deadline, watching).message)
+                state = json.loads(self._trigger(executor, self.reset_clients[spec.controller], deadline,
+                                                 watching).message)
                 if all(state[key] == value for key, value in expected.items()):
                     break
                 executor.spin_once(timeout_sec=0.01)
@@ -496,7 +497,7 @@ class GraphDriver(Node):
                              'the messages of the last episode to drain', watching)
             self.recording = Recording(plan.k_max, spec.controller)
             self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
-            reply = self._reset(executor, self.plant_node, deadline, watching)
+            reply = self._trigger(executor, self.reset_clients[self.plant_node], deadline, watching)
             if not reply.success:
                 raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
             self._check_started_with(self.plant_node, plant_parameters, json.loads(reply.message)['parameters'])
@@ -510,7 +511,8 @@ class GraphDriver(Node):
                 raise GraphEpisodeError(f'{self.node_name(self.plant_node)} counted {counted} during the episode: '
                                         'commands it refused, missed or got twice (a foreign publisher?)')
             self._watch_graph_now(spec.controller)
-            after = json.loads(self._reset(executor, spec.controller, deadline, watching, self.status_clients).message)
+            after = json.loads(self._trigger(executor, self.status_clients[spec.controller], deadline,
+                                             watching).message)
             if after.get('configuration') != configuration:
                 raise GraphEpisodeError(f'{self.node_name(spec.controller)} was reconfigured, reset or sent another '
                                         'reference during the episode (by another node?): its commands may not be '

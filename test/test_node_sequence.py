@@ -120,7 +120,7 @@ def no_start(sequence):
                                                   Parameter('command_timeout', value=0.5)], wall, sequence.alive)
     driver.recording = ros_episode.Recording(100, 'computed_torque')
     try:
-        assert driver._reset(sequence.executor, 'plant', wall, sequence.alive).success
+        assert driver._trigger(sequence.executor, driver.reset_clients['plant'], wall, sequence.alive).success
         driver._spin_until(sequence.executor, lambda: driver.recording.error is not None, wall, 'no start',
                            sequence.alive)
         assert 'no start' in driver.recording.error
