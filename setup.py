@@ -13,7 +13,7 @@ setup(
                 'and computed torque)',
     license='Apache-2.0',
     python_requires='>=3.10',
-    packages=find_packages(include=['ddarm_sim', 'ddarm_control', 'ddarm_tuner']),
+    packages=find_packages(include=['ddarm', 'ddarm.*', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner']),
     # ros2 run finds a package through its ament index marker and runs lib/<package>/<executable>:
     # one marker and one executable folder per Python package the user names.
     data_files=[
@@ -44,7 +44,7 @@ setup(
     zip_safe=True,
     entry_points={
         'console_scripts': [
-            'ddarm = ddarm_tuner.cli:main',
+            'ddarm = ddarm.cli.main:main',
         ],
     },
 )

@@ -19,10 +19,10 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from ddarm_tuner.batch import simulate_batch
-from ddarm_tuner.bench import REFERENCE, peak_rss_mib, perturbed_gains, run_bench
-from ddarm_tuner.episodes import EpisodeSpec, load_arm
-from ddarm_tuner.search import omega_starts, search_gains
+from ddarm.episodes.engine import simulate_batch
+from ddarm.episodes.bench import REFERENCE, peak_rss_mib, perturbed_gains, run_bench
+from ddarm.episodes.spec import EpisodeSpec, load_arm
+from ddarm.tuning.search import omega_starts, search_gains
 
 
 def throughput(sizes, threads) -> dict:

@@ -9,8 +9,8 @@ import argparse
 import json
 import os
 
-from ddarm_tuner.episodes import EpisodeSpec
-from ddarm_tuner.ros_episode import run_graph_episode
+from ddarm.episodes.spec import EpisodeSpec
+from ddarm.ros.driver import run_graph_episode
 
 
 def main() -> None:

@@ -16,15 +16,15 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_control.gains import omega_rule_gains
-from ddarm_control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint,
+from ddarm.control.gains import omega_rule_gains
+from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint,
                                 SampledController, checked_delay, checked_gains, make_law)
-from ddarm_sim.model import Arm, ModelError
-from ddarm_sim.ros_interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
+from ddarm.physics.arm import Arm, ModelError
+from ddarm.ros.interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, Reference, descriptor, joint_state_msg, plain_parameters,
                                      proposed_values, read_joint_state, read_reference,
                                      refuse_undeclared_parameters, run_node, undeclared_overrides)
-from ddarm_sim.samples import MessageError
+from ddarm.samples import MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
 MAX_WAITING_STATES = 10_000
@@ -165,7 +165,7 @@ class ControllerNode(Node):
     def _incompatible_qos(self, event) -> None:
         self.incompatible_qos_events += 1
         self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
-                                'samples will not flow; use the profiles of ddarm_sim.ros_interface')
+                                'samples will not flow; use the profiles of ddarm.ros.interface')
 
     def _on_reference(self, msg: JointTrajectory) -> None:
         try:

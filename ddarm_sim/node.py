@@ -17,15 +17,15 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from ddarm_sim.model import Arm, ModelError
-from ddarm_sim.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
-from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
+from ddarm.physics.arm import Arm, ModelError
+from ddarm.physics.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
+from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, plain_parameters, proposed_values,
                                      read_joint_state, refuse_undeclared_parameters, run_node, time_msg,
                                      undeclared_overrides)
-from ddarm_sim.samples import MessageError
-from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
+from ddarm.samples import MessageError
+from ddarm.motion.programmed import TRAJECTORY_ENDPOINTS, paper_trajectory
 
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
@@ -177,7 +177,7 @@ class PlantNode(Node):
     def _incompatible_qos(self, event) -> None:
         self.incompatible_qos_events += 1
         self.get_logger().error(f'incompatible QoS with a peer (policy {event.last_policy_kind}): '
-                                'samples will not flow; use the profiles of ddarm_sim.ros_interface')
+                                'samples will not flow; use the profiles of ddarm.ros.interface')
 
     # Episodes --------------------------------------------------------------------------------
 

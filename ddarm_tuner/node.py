@@ -13,15 +13,15 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
-from ddarm_sim.ros_interface import (descriptor, parameter_file_refusal, proposed_values, refuse_undeclared_parameters,
+from ddarm.control.laws import CONTROLLERS
+from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
+from ddarm.ros.interface import (descriptor, parameter_file_refusal, proposed_values, refuse_undeclared_parameters,
                                      undeclared_overrides)
-from ddarm_tuner.bags import STORAGES, BagError, score_bag
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, check_episode
-from ddarm_tuner.interrupts import Interrupted, stop_on_signals
-from ddarm_tuner.ros_episode import PEER_TIMEOUT, GraphDriver, GraphEpisodeError, episode_record
-from ddarm_tuner.runs import DEFAULT_ROOT, RunFolder
+from ddarm.recording.bags import STORAGES, BagError, score_bag
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode
+from ddarm.interrupts import Interrupted, stop_on_signals
+from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError, episode_record
+from ddarm.recording.runs import DEFAULT_ROOT, RunFolder
 
 
 class TunerNode(GraphDriver):
@@ -30,7 +30,7 @@ class TunerNode(GraphDriver):
     Gains come from `kp`/`kv`, or from `gains_file` (a controller parameter YAML such as
     `ddarm tune` writes). Results land in <output_root>/<run_name>/: a bag per episode,
     summary.json with the indices scored from each bag, and run.log. Every episode is checked
-    before it starts (`ddarm_tuner.ros_episode.GraphDriver`): the plant and the controller on the
+    before it starts (`ddarm.ros.driver.GraphDriver`): the plant and the controller on the
     graph once each, and nobody else publishing on the episode's topics.
     """
 

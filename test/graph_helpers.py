@@ -5,8 +5,8 @@ from rclpy.parameter import Parameter
 
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
-from ddarm_tuner.episodes import plan_episode
-from ddarm_tuner.ros_episode import GraphDriver, node_parameters
+from ddarm.episodes.spec import plan_episode
+from ddarm.ros.driver import GraphDriver, node_parameters
 
 
 def overrides(values: dict) -> list:

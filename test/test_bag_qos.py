@@ -17,8 +17,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_sim.ros_interface import CLOCK_QOS, DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS
-from ddarm_tuner.bags import DEFAULT_QOS, EPISODE_TOPIC, TOPICS, BagError, EpisodeBagWriter
+from ddarm.ros.interface import CLOCK_QOS, DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS
+from ddarm.recording.bags import DEFAULT_QOS, EPISODE_TOPIC, TOPICS, BagError, EpisodeBagWriter
 
 DECLARED = {'/joint_states': SAMPLE_QOS, '/effort_command': SAMPLE_QOS, '/reference': REFERENCE_QOS,
             '/clock': CLOCK_QOS, '/diagnostics': DIAGNOSTICS_QOS}

@@ -13,12 +13,12 @@ import pytest
 import yaml
 from rosbags.rosbag2 import Reader, Writer
 
-from ddarm_tuner.bags import (PUBLISHERS_KEY, SAMPLED_TOPICS, STORAGES, TOPICS, TYPESTORE, BagError,
+from ddarm.recording.bags import (PUBLISHERS_KEY, SAMPLED_TOPICS, STORAGES, TOPICS, TYPESTORE, BagError,
                               EpisodeBagWriter, bag_status, checked_output_path, child_path, deserialize,
                               read_episode_bag, score_bag)
-from ddarm_tuner.cli import main
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
-from ddarm_tuner.ros_episode import episode_record, run_graph_episode
+from ddarm.cli.main import main
+from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.ros.driver import episode_record, run_graph_episode
 from graph_helpers import InProcessGraph
 
 SPECS = {
@@ -316,7 +316,7 @@ def test_publishers_must_be_named_fully(tmp_path, publishers, refused):
 FILE_SIZE_LIMITED = r'''
 import json, resource, signal, sys
 import numpy as np
-from ddarm_tuner.bags import TYPESTORE, BagError, EpisodeBagWriter
+from ddarm.recording.bags import TYPESTORE, BagError, EpisodeBagWriter
 
 path, storage, limit, count = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 types = TYPESTORE.types

@@ -7,11 +7,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from ddarm_sim.model import ModelError
-from ddarm_sim.trajectory import ProgrammedMotion
-from ddarm_tuner.batch import MAX_BATCH, BatchError, chain_from_model, simulate_batch
-from ddarm_tuner.cli import main
-from ddarm_tuner.episodes import EpisodeSpec, plan_motion, run_episode
+from ddarm.physics.arm import ModelError
+from ddarm.motion.programmed import ProgrammedMotion
+from ddarm.episodes.engine import MAX_BATCH, BatchError, chain_from_model, simulate_batch
+from ddarm.cli.main import main
+from ddarm.episodes.spec import EpisodeSpec, plan_motion, run_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
 PD_10 = dict(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))

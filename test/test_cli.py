@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from ddarm_tuner.cli import main
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
+from ddarm.cli.main import main
+from ddarm.episodes.spec import EpisodeSpec, run_episode
 
 
 def run_json(capsys, *arguments):

@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ddarm_control.gains import computed_torque_error_external
-from ddarm_sim.model import Arm
-from ddarm_sim.trajectory import paper_trajectory
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, plan_episode, plan_motion, run_episode
+from ddarm.control.gains import computed_torque_error_external
+from ddarm.physics.arm import Arm
+from ddarm.motion.programmed import paper_trajectory
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, plan_episode, plan_motion, run_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
 PD_10 = dict(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))

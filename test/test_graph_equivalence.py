@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
-from ddarm_tuner.ros_episode import run_graph_episode
+from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.ros.driver import run_graph_episode
 from graph_helpers import run_in_process
 
 GAINS = {'computed_torque': dict(kp=(225.0,) * 3, kv=(30.0,) * 3),

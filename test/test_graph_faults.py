@@ -19,13 +19,13 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_control.laws import ComputedTorqueLaw, Measurement, ReferencePoint
+from ddarm.control.laws import ComputedTorqueLaw, Measurement, ReferencePoint
 from ddarm_control.node import ControllerNode
-from ddarm_sim.model import Arm
+from ddarm.physics.arm import Arm
 from ddarm_sim.node import ENDED, RUNNING, PlantNode
-from ddarm_sim.ros_interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg,
+from ddarm.ros.interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg,
                                      reference_msg)
-from ddarm_tuner.episodes import EpisodeSpec, plan_episode
+from ddarm.episodes.spec import EpisodeSpec, plan_episode
 from conftest import claim_domain_id
 from graph_helpers import overrides
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ddarm_tuner.indices import IndicesError, index_2_5, index_3_2, torque_weights
+from ddarm.episodes.indices import IndicesError, index_2_5, index_3_2, torque_weights
 
 
 def test_index_2_5_by_hand():

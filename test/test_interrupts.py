@@ -5,7 +5,7 @@ import signal
 
 import pytest
 
-from ddarm_tuner.interrupts import Interrupted, check_stop, critical_section, stop_on_signals
+from ddarm.interrupts import Interrupted, check_stop, critical_section, stop_on_signals
 
 
 class StoppedWhileCollected:

@@ -10,11 +10,11 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
-from ddarm_sim.ros_interface import SAMPLE_QOS, joint_state_msg
-from ddarm_tuner.bags import score_bag
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
+from ddarm.ros.interface import SAMPLE_QOS, joint_state_msg
+from ddarm.recording.bags import score_bag
+from ddarm.episodes.spec import EpisodeSpec, run_episode
 from ddarm_tuner.node import TunerNode
-from ddarm_tuner.ros_episode import GraphEpisodeError
+from ddarm.ros.driver import GraphEpisodeError
 from process_helpers import ddarm, finished_json, start_node, stop
 
 KP, KV = [900.0] * 3, [60.0] * 3
@@ -177,8 +177,8 @@ def reset_controller(node, msg):
 
 
 def replace_reference(node, msg):
-    from ddarm_sim.ros_interface import REFERENCE_QOS, reference_msg
-    from ddarm_tuner.episodes import check_episode
+    from ddarm.ros.interface import REFERENCE_QOS, reference_msg
+    from ddarm.episodes.spec import check_episode
     from trajectory_msgs.msg import JointTrajectory
 
     plan = check_episode(EpisodeSpec(controller='computed_torque', kp=KP, kv=KV))
@@ -212,7 +212,7 @@ def test_a_node_that_meddles_once_during_the_episode_fails_it(ros_context, hand_
 def test_a_forged_plant_report_is_a_named_failure_not_a_crash(ros_context, hand_started):
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-    from ddarm_sim.ros_interface import DIAGNOSTICS_QOS
+    from ddarm.ros.interface import DIAGNOSTICS_QOS
 
     def forge(node, msg):
         publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)

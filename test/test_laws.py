@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from ddarm_control.gains import (computed_torque_error_external, computed_torque_error_mass,
+from ddarm.control.gains import (computed_torque_error_external, computed_torque_error_mass,
                                  omega_rule_computed_torque, omega_rule_pd_gravity, pd_gravity_error,
                                  smallest_omega)
-from ddarm_control.laws import (ComputedTorqueLaw, DelayBuffer, GainError, Measurement, PDGravityLaw,
+from ddarm.control.laws import (ComputedTorqueLaw, DelayBuffer, GainError, Measurement, PDGravityLaw,
                                 ReferencePoint, SampledController, checked_delay, checked_gains,
                                 computed_torque, pd_gravity)
-from ddarm_sim.model import Arm
+from ddarm.physics.arm import Arm
 
 
 @pytest.fixture(scope='module')
@@ -124,7 +124,7 @@ def test_steady_state_formulas_and_the_smallest_omega(arm):
 
 
 def test_the_sampled_model_boundary_scales_with_the_period_and_grows_without_delay():
-    from ddarm_control.gains import largest_stable_omega
+    from ddarm.control.gains import largest_stable_omega
 
     for delay in (0, 1, 2):
         products = [largest_stable_omega(period, delay) * period for period in (0.005, 0.01, 0.02, 0.05)]
@@ -136,8 +136,8 @@ def test_the_sampled_model_boundary_scales_with_the_period_and_grows_without_del
 def test_the_sampled_model_boundary_matches_the_simulated_arm():
     import dataclasses
 
-    from ddarm_control.gains import largest_stable_omega
-    from ddarm_tuner.episodes import EpisodeSpec, run_episode
+    from ddarm.control.gains import largest_stable_omega
+    from ddarm.episodes.spec import EpisodeSpec, run_episode
 
     period = 0.01
     boundary = largest_stable_omega(period, 1)

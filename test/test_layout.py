@@ -10,14 +10,14 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 ROS_FACING = ('node', 'ros', 'driver', 'session', 'graph', 'cli')
 MODULES = sorted('.'.join(path.relative_to(ROOT).with_suffix('').parts)
-                 for package in ('ddarm_sim', 'ddarm_control', 'ddarm_tuner')
+                 for package in ('ddarm', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner')
                  for path in (ROOT / package).rglob('*.py'))
 CORE = [module for module in MODULES
         if not any(word in ROS_FACING for part in module.split('.') for word in part.split('_'))]
 
 
 def test_the_core_is_found():
-    assert 'ddarm_sim.plant' in CORE and 'ddarm_tuner.experiments' in CORE and 'ddarm_sim.node' not in CORE
+    assert 'ddarm.physics.plant' in CORE and 'ddarm.paper.experiments' in CORE and 'ddarm_sim.node' not in CORE
 
 
 @pytest.mark.parametrize('module', CORE)

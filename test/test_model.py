@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ddarm_sim.model import Arm, ModelError
-from ddarm_sim.plant import Plant, PlantOptions
+from ddarm.physics.arm import Arm, ModelError
+from ddarm.physics.plant import Plant, PlantOptions
 
 G = 9.81
 

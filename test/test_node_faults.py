@@ -16,10 +16,10 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from ddarm_control.node import ControllerNode
-from ddarm_sim.model import Arm, ModelError
+from ddarm.physics.arm import Arm, ModelError
 from ddarm_sim.node import RUNNING, PlantNode
-from ddarm_sim.ros_interface import DIAGNOSTICS_QOS, SAMPLE_QOS, joint_state_msg, sample_index
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
+from ddarm.ros.interface import DIAGNOSTICS_QOS, SAMPLE_QOS, joint_state_msg, sample_index
+from ddarm.episodes.spec import EpisodeSpec, run_episode
 from graph_helpers import InProcessGraph, overrides
 from test_graph_equivalence import assert_same_episode
 

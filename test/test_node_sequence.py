@@ -12,10 +12,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
-from ddarm_sim.ros_interface import SAMPLE_QOS, joint_state_msg
-from ddarm_tuner import ros_episode
-from ddarm_tuner.episodes import EpisodeSpec, check_episode, run_episode
-from ddarm_tuner.ros_episode import GraphDriver, GraphEpisodeError
+from ddarm.ros.interface import SAMPLE_QOS, joint_state_msg
+from ddarm.ros import driver as ros_episode
+from ddarm.episodes.spec import EpisodeSpec, check_episode, run_episode
+from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from process_helpers import start_node, stop, wait_for
 
 GOOD = EpisodeSpec(controller='computed_torque', kp=(900.0,) * 3, kv=(60.0,) * 3)

@@ -7,7 +7,7 @@ import pytest
 import rclpy
 
 from ddarm_control.node import ControllerNode
-from ddarm_tuner.cli import main
+from ddarm.cli.main import main
 
 G = 9.81
 # MODEL.md section 3 at trajectory 1's q_f = (π/2, 0, 0): c2 = c3 = c23 = 1.

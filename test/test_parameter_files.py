@@ -1,4 +1,4 @@
-"""Parameter files that configure no node of the process are refused, naming the file (ddarm_sim/parameter_files.py)."""
+"""Parameter files that configure no node of the process are refused, naming the file (ddarm/ros/parameter_files.py)."""
 
 import re
 
@@ -6,7 +6,7 @@ import pytest
 import rclpy
 from rclpy.node import Node
 
-from ddarm_sim.parameter_files import (ParameterFileError, check_parameter_files, configures, node_keys,
+from ddarm.ros.parameter_files import (ParameterFileError, check_parameter_files, configures, node_keys,
                                        parameter_file_paths)
 
 # (key, fully qualified name, whether rcl applies the key's parameters to that node), as rclpy 7.1 on

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ddarm_sim.model import Arm
-from ddarm_sim.plant import Plant, PlantError, PlantOptions
+from ddarm.physics.arm import Arm
+from ddarm.physics.plant import Plant, PlantError, PlantOptions
 
 
 @pytest.fixture(scope='module')

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from ddarm_tuner.cli import main
+from ddarm.cli.main import main
 from process_helpers import DDARM
 
 
@@ -74,7 +74,7 @@ def test_a_bag_on_a_full_disk_is_a_named_refusal_not_a_traceback(tmp_path):
     script = ('import resource, signal, sys\n'
               'signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n'
               'resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))\n'
-              'from ddarm_tuner.cli import main\n'
+              'from ddarm.cli.main import main\n'
               'sys.exit(main(sys.argv[1:]))\n')
     bag = tmp_path / 'bag'
     done = subprocess.run([sys.executable, '-c', script, 'episode', '--controller', 'computed_torque', '--omega',
@@ -109,7 +109,7 @@ def test_the_tuner_refuses_an_output_root_that_is_a_file(tmp_path):
 def test_a_bug_is_not_dressed_as_a_refusal(monkeypatch):
     """Only ddarm's named errors (DdarmError) and the system's refusals of paths become exit 2: a bug keeps
     its traceback."""
-    import ddarm_tuner.cli as cli
+    import ddarm.cli.main as cli
 
     def broken(spec):
         raise ValueError('a bug')

@@ -6,10 +6,10 @@ import struct
 
 import pytest
 
-from ddarm_tuner.bags import EpisodeBagWriter, score_bag
-from ddarm_tuner.episodes import EpisodeSpec
-from ddarm_tuner.report import ReportError, number, write_report
-from ddarm_tuner.ros_episode import episode_record
+from ddarm.recording.bags import EpisodeBagWriter, score_bag
+from ddarm.episodes.spec import EpisodeSpec
+from ddarm.paper.report import ReportError, number, write_report
+from ddarm.ros.driver import episode_record
 from graph_helpers import InProcessGraph
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')

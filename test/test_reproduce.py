@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from ddarm_tuner.bags import score_bag
-from ddarm_tuner.cli import main
+from ddarm.recording.bags import score_bag
+from ddarm.cli.main import main
 
 PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_sim.ros_interface import (joint_state_msg, read_joint_state, read_reference, reference_msg, sample_index,
+from ddarm.ros.interface import (joint_state_msg, read_joint_state, read_reference, reference_msg, sample_index,
                                      time_msg)
-from ddarm_sim.samples import MAX_JOINTS, MessageError
+from ddarm.samples import MAX_JOINTS, MessageError
 
 JOINTS = ['joint1', 'joint2', 'joint3']
 

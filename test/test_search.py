@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
-from ddarm_tuner.search import SearchError, omega_starts, search_gains
+from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.tuning.search import SearchError, omega_starts, search_gains
 
 CT = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, delay=1)
 PD = EpisodeSpec(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0), delay=0)

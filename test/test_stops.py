@@ -6,7 +6,7 @@ import signal
 
 import pytest
 
-from ddarm_tuner.bags import BagError, bag_status, score_bag
+from ddarm.recording.bags import BagError, bag_status, score_bag
 from process_helpers import alive, children, ddarm, interrupt, wait_for
 
 LONG_EPISODE = ('episode', '--controller', 'computed_torque', '--omega', '15', '--realtime', '--duration', '60',

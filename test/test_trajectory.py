@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from ddarm_sim.model import Arm
-from ddarm_sim.trajectory import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
+from ddarm.physics.arm import Arm
+from ddarm.motion.programmed import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
                                   sample_count, sample_times)
 
 

@@ -8,8 +8,8 @@ import pytest
 import rclpy
 
 from ddarm_control.node import ControllerNode
-from ddarm_tuner.bags import score_bag
-from ddarm_tuner.cli import main
+from ddarm.recording.bags import score_bag
+from ddarm.cli.main import main
 
 
 @pytest.mark.parametrize('controller, index, method, delay', [

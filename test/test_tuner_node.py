@@ -11,10 +11,10 @@ import pytest
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
-from ddarm_tuner.bags import BagError, bag_status, score_bag
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, run_episode
+from ddarm.recording.bags import BagError, bag_status, score_bag
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, run_episode
 from ddarm_tuner.node import TunerNode
-from ddarm_tuner.runs import RunFolder
+from ddarm.recording.runs import RunFolder
 from process_helpers import stop
 
 GAINS = {'computed_torque': ([900.0] * 3, [60.0] * 3, 1),

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
+from ddarm.episodes.spec import EpisodeSpec, run_episode
 
 # Issue 5's reference case: computed torque with the ω = 15 rule, trajectory 1, T = 1 s, Δ = 0.01 s, delay 1.
 REFERENCE = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, trajectory=1,
@@ -42,7 +42,7 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
     runs on one episode before the timing and is reported as warmup_s.
     """
     # The engine pulls in numba: only this command pays for importing it.
-    from ddarm_tuner.batch import simulate_batch
+    from ddarm.episodes.engine import simulate_batch
 
     kp, kv = perturbed_gains(episodes, seed)
     threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), episodes)
@@ -76,7 +76,7 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
 def _count(name: str):
     """An argparse type: a whole number in [1, batch.<name>]."""
     def parse(text: str) -> int:
-        from ddarm_tuner import batch
+        from ddarm.episodes import engine as batch
 
         largest = getattr(batch, name)
         value = int(text)

@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import cma
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.trajectory import paper_trajectory
-from ddarm_tuner.batch import simulate_batch
-from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega, plan_episode
-from ddarm_tuner.interrupts import check_stop
+from ddarm.errors import DdarmError
+from ddarm.motion.programmed import paper_trajectory
+from ddarm.episodes.engine import simulate_batch
+from ddarm.episodes.spec import EpisodeSpec, gains_from_omega, plan_episode
+from ddarm.interrupts import check_stop
 
 METHODS = ('nelder-mead', 'cma')
 # The paper's index names, and the batch result field each one reads.

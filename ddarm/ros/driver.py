@@ -29,16 +29,16 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.lifetime import child_environment
-from ddarm_sim.ros_interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
+from ddarm.control.laws import CONTROLLERS
+from ddarm.errors import DdarmError
+from ddarm.ros.lifetime import child_environment
+from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, read_joint_state, reference_msg)
-from ddarm_sim.samples import MessageError
-from ddarm_tuner.bags import EpisodeBagWriter, checked_output_path
-from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, check_episode, load_arm, score
-from ddarm_tuner.interrupts import check_stop
+from ddarm.samples import MessageError
+from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
+from ddarm.episodes.spec import EpisodePlan, EpisodeResult, EpisodeSpec, check_episode, load_arm, score
+from ddarm.interrupts import check_stop
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
@@ -63,7 +63,7 @@ QUIET_PERIOD = 0.05
 # plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
-# The profile each recorded topic's publisher declares (ddarm_sim.ros_interface).
+# The profile each recorded topic's publisher declares (ddarm.ros.interface).
 TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: SAMPLE_QOS,
              '/' + REFERENCE_TOPIC: REFERENCE_QOS, CLOCK_TOPIC: CLOCK_QOS, DIAGNOSTICS_TOPIC: DIAGNOSTICS_QOS}
 FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicate_commands'),
@@ -602,7 +602,7 @@ class GraphSession:
     The session's nodes live in a namespace of their own (`session_namespace`), so two sessions,
     or a session and a user's graph, on one domain never hear each other. The node processes live
     as long as the session, so episodes cost no start-up, and no longer: they end when it closes
-    and, should this process be killed, with it (`ddarm_sim.lifetime`). Switching controller
+    and, should this process be killed, with it (`ddarm.ros.lifetime`). Switching controller
     stops the other law's process, because two laws would answer the same states.
     """
 
@@ -706,7 +706,7 @@ def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storag
     Returns what the driver heard and the bag's score (the JSON of `ddarm score`); the bag is
     closed and marked complete or incomplete whatever happens.
     """
-    from ddarm_tuner.bags import score_bag
+    from ddarm.recording.bags import score_bag
 
     plan = check_episode(spec)
     with session.open_bag(bag, spec, plan, 'ros-lockstep', storage, command) as writer:

@@ -1,6 +1,6 @@
 """The reproduction's report: REPORT.md beside the paper's figures, and its PNG figures, from results.json and its bags.
 
-Pure (no ROS): `write_report` reads the results dict that ddarm_tuner.experiments writes to
+Pure (no ROS): `write_report` reads the results dict that ddarm.paper.experiments writes to
 results.json and, for the tracking figure, two of the bags it names (paths relative to the
 output folder). Figures are drawn on the Agg canvas directly, so no pyplot state is touched.
 """
@@ -18,9 +18,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
-from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.errors import DdarmError
-from ddarm_tuner.bags import BagEpisode, read_episode_bag
+from ddarm.control.laws import CONTROLLERS
+from ddarm.errors import DdarmError
+from ddarm.recording.bags import BagEpisode, read_episode_bag
 
 CONTROLLER_NAMES = {'pd_gravity': 'PD + gravity', 'computed_torque': 'computed torque'}
 COLOURS = {'pd_gravity': 'tab:blue', 'computed_torque': 'tab:red'}

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import yaml
 
-from ddarm_tuner.bags import BagError, checked_output_path, child_path
-from ddarm_tuner.interrupts import Interrupted, critical_section
+from ddarm.recording.bags import BagError, checked_output_path, child_path
+from ddarm.interrupts import Interrupted, critical_section
 
 DEFAULT_ROOT = Path('runs')
 

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import yaml
 
-from ddarm_sim.errors import DdarmError
+from ddarm.errors import DdarmError
 
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
 PARAMETERS_KEY = 'ros__parameters'

@@ -25,10 +25,10 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.samples import MessageError, joint_order, sample_at
-from ddarm_tuner.episodes import EpisodePlan, EpisodeResult, EpisodeSpec, score
-from ddarm_tuner.interrupts import Interrupted, critical_section
+from ddarm.errors import DdarmError
+from ddarm.samples import MessageError, joint_order, sample_at
+from ddarm.episodes.spec import EpisodePlan, EpisodeResult, EpisodeSpec, score
+from ddarm.interrupts import Interrupted, critical_section
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -68,7 +68,7 @@ class TopicQos(TypedDict):
     depth: int
 
 
-# These mirror ddarm_sim.ros_interface's SAMPLE_QOS, REFERENCE_QOS, CLOCK_QOS and DIAGNOSTICS_QOS
+# These mirror ddarm.ros.interface's SAMPLE_QOS, REFERENCE_QOS, CLOCK_QOS and DIAGNOSTICS_QOS
 # (restated, since that module imports rclpy). /ddarm/episode has no DDS publisher: it is
 # recorded latched, so a replay hands the configuration to a late subscriber.
 DEFAULT_QOS: dict[str, TopicQos] = {

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.model import Arm
+from ddarm.errors import DdarmError
+from ddarm.physics.arm import Arm
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes

@@ -21,12 +21,12 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.model import ModelError
-from ddarm_sim.plant import PlantOptions
-from ddarm_sim.trajectory import paper_trajectory
-from ddarm_tuner.episodes import EpisodePlan, EpisodeSpec, load_arm, plan_episode
-from ddarm_tuner.indices import error_weights, torque_weights
+from ddarm.errors import DdarmError
+from ddarm.physics.arm import ModelError
+from ddarm.physics.plant import PlantOptions
+from ddarm.motion.programmed import paper_trajectory
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, load_arm, plan_episode
+from ddarm.episodes.indices import error_weights, torque_weights
 
 # Far beyond any batch an optimiser asks for; refused before anything is allocated.
 MAX_BATCH = 100_000

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.model import Arm
+from ddarm.errors import DdarmError
+from ddarm.physics.arm import Arm
 
 
 class MotionError(DdarmError, ValueError):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ddarm_control.laws import GainError
+from ddarm.control.laws import GainError
 
 # The ω of the ω-rule gains the searches start from: around the paper's ω = 15, on both sides.
 SEARCH_START_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)

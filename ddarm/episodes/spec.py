@@ -7,15 +7,15 @@ from functools import lru_cache
 
 import numpy as np
 
-from ddarm_control.gains import omega_rule_gains
-from ddarm_control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
+from ddarm.control.gains import omega_rule_gains
+from ddarm.control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_gains, make_law)
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.model import Arm, ModelError
-from ddarm_sim.plant import DEFAULT_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
-from ddarm_sim.trajectory import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
+from ddarm.errors import DdarmError
+from ddarm.physics.arm import Arm, ModelError
+from ddarm.physics.plant import DEFAULT_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
+from ddarm.motion.programmed import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
                                   sample_count, sample_times)
-from ddarm_tuner.indices import index_3_2
+from ddarm.episodes.indices import index_3_2
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000

@@ -11,14 +11,14 @@ import time
 
 import numpy as np
 
-from ddarm_control.gains import SEARCH_START_OMEGAS
-from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.plant import DEFAULT_SUBSTEPS
-from ddarm_sim.trajectory import TRAJECTORY_ENDPOINTS, paper_trajectory
-from ddarm_tuner.bench import add_bench_parser
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
-from ddarm_tuner.interrupts import Interrupted, critical_section, stop_on_signals
+from ddarm.control.gains import SEARCH_START_OMEGAS
+from ddarm.control.laws import CONTROLLERS
+from ddarm.errors import DdarmError
+from ddarm.physics.plant import DEFAULT_SUBSTEPS
+from ddarm.motion.programmed import TRAJECTORY_ENDPOINTS, paper_trajectory
+from ddarm.episodes.bench import add_bench_parser
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega, run_episode
+from ddarm.interrupts import Interrupted, critical_section, stop_on_signals
 
 
 def _finite(text: str) -> float:
@@ -102,7 +102,7 @@ def print_summary(summary: dict) -> None:
 
 
 def command_episode(args: argparse.Namespace) -> int:
-    from ddarm_tuner.episodes import check_episode
+    from ddarm.episodes.spec import check_episode
 
     if args.bag and not (args.ros or args.realtime):
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
@@ -111,7 +111,7 @@ def command_episode(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     warnings = []
     if args.ros or args.realtime:
-        from ddarm_tuner.ros_episode import realtime_warnings, run_graph_episode  # ROS only when asked for
+        from ddarm.ros.driver import realtime_warnings, run_graph_episode  # ROS only when asked for
 
         result = run_graph_episode(spec, realtime=args.realtime, bag=args.bag, storage=args.storage,
                                    command=shlex.join(['ddarm', *args.argv]))
@@ -131,7 +131,7 @@ def command_episode(args: argparse.Namespace) -> int:
 
 
 def command_score(args: argparse.Namespace) -> int:
-    from ddarm_tuner.bags import BagError, score_bag
+    from ddarm.recording.bags import BagError, score_bag
 
     failures = 0
     for bag in args.bags:
@@ -153,8 +153,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
     """Refuse an --out or run folder that cannot be written as asked, before any search or episode."""
     from pathlib import Path
 
-    from ddarm_tuner.bags import BagError, checked_output_path
-    from ddarm_tuner.runs import RunFolder
+    from ddarm.recording.bags import BagError, checked_output_path
+    from ddarm.recording.runs import RunFolder
 
     if args.out:
         out = checked_output_path(args.out)
@@ -167,7 +167,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def _run_folder(args: argparse.Namespace, kind: str):
-    from ddarm_tuner.runs import RunFolder
+    from ddarm.recording.runs import RunFolder
 
     name = args.run or time.strftime(f'{kind}-{args.controller}-%Y%m%d-%H%M%S')
     return RunFolder(name, args.runs, command=shlex.join(['ddarm', *args.argv]))
@@ -175,8 +175,8 @@ def _run_folder(args: argparse.Namespace, kind: str):
 
 def _write_gains(run, args, kp, kv, spec: EpisodeSpec, provenance: str) -> list[str]:
     """The controller YAML in the run folder, and at --out if given (never overwriting)."""
-    from ddarm_tuner.bags import checked_output_path
-    from ddarm_tuner.runs import controller_yaml
+    from ddarm.recording.bags import checked_output_path
+    from ddarm.recording.runs import controller_yaml
 
     text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance)
     written = [str(run.write_text(f'{spec.controller}.yaml', text))]
@@ -187,8 +187,8 @@ def _write_gains(run, args, kp, kv, spec: EpisodeSpec, provenance: str) -> list[
 
 
 def command_omega(args: argparse.Namespace) -> int:
-    from ddarm_tuner.episodes import check_episode
-    from ddarm_tuner.procedures import omega_procedure
+    from ddarm.episodes.spec import check_episode
+    from ddarm.tuning.procedures import omega_procedure
 
     if args.mass_error is not None and args.mass_scale is not None:
         raise EpisodeError('give --mass-error or --mass-scale, not both')
@@ -248,7 +248,7 @@ def _report_omega(args: argparse.Namespace, spec: EpisodeSpec, choice, run) -> i
 
 
 def command_tune(args: argparse.Namespace) -> int:
-    from ddarm_tuner.tune import INDEX_KEYS, tune
+    from ddarm.tuning.tune import INDEX_KEYS, tune
 
     _check_outputs(args)
     template = episode_spec(args)
@@ -264,8 +264,8 @@ def command_tune(args: argparse.Namespace) -> int:
 
 def _check_tuning(args: argparse.Namespace, template: EpisodeSpec, tuning, run, progress) -> int:
     """The tuned gains run once through the ROS graph, recorded and scored from the bag; the YAML only if they agree."""
-    from ddarm_tuner.ros_episode import GraphSession, record_and_score
-    from ddarm_tuner.tune import INDEX_KEYS, with_gains
+    from ddarm.ros.driver import GraphSession, record_and_score
+    from ddarm.tuning.tune import INDEX_KEYS, with_gains
 
     key = INDEX_KEYS[args.index]
     best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
@@ -317,11 +317,11 @@ def _check_tuning(args: argparse.Namespace, template: EpisodeSpec, tuning, run, 
 
 
 def command_reproduce(args: argparse.Namespace) -> int:
-    from ddarm_tuner.bags import checked_output_path
-    from ddarm_tuner.experiments import Budget, Reproduction
-    from ddarm_tuner.report import write_report
-    from ddarm_tuner.ros_episode import GraphSession
-    from ddarm_tuner.runs import RunFolder
+    from ddarm.recording.bags import checked_output_path
+    from ddarm.paper.experiments import Budget, Reproduction
+    from ddarm.paper.report import write_report
+    from ddarm.ros.driver import GraphSession
+    from ddarm.recording.runs import RunFolder
 
     out = checked_output_path(args.out)
     started = time.perf_counter()

@@ -18,8 +18,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from ddarm_sim.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
-from ddarm_sim.samples import MessageError, joint_order, sample_at
+from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
+from ddarm.samples import MessageError, joint_order, sample_at
 
 JOINT_STATES_TOPIC = 'joint_states'
 EFFORT_COMMAND_TOPIC = 'effort_command'
@@ -244,7 +244,7 @@ def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
 
-    from ddarm_sim.lifetime import follow_parent
+    from ddarm.ros.lifetime import follow_parent
 
     follow_parent()
     try:

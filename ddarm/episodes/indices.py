@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
+from ddarm.errors import DdarmError
 
 # S_i = 360/2π: errors in radians weigh as degrees.
 DEGREES_PER_RADIAN = 360.0 / (2.0 * np.pi)

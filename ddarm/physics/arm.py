@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from ddarm_sim.errors import DdarmError
+from ddarm.errors import DdarmError
 
 URDF_NAME = 'ddarm.urdf'
 
@@ -20,10 +20,10 @@ class ModelError(DdarmError, ValueError):
 
 def default_urdf_path() -> Path:
     """The arm's URDF: from the source tree, else from the share folder of the prefix this module is installed in."""
-    here = Path(__file__).resolve().parent
-    candidates = [here.parent / 'config' / URDF_NAME]
-    if len(here.parents) > 3:  # <prefix>/lib/pythonX.Y/site-packages/ddarm_sim (colcon or pip)
-        candidates.append(here.parents[3] / 'share' / 'ddarm' / 'config' / URDF_NAME)
+    package = Path(__file__).resolve().parents[1]
+    candidates = [package.parent / 'config' / URDF_NAME]
+    if len(package.parents) > 3:  # <prefix>/lib/pythonX.Y/site-packages/ddarm (colcon or pip)
+        candidates.append(package.parents[3] / 'share' / 'ddarm' / 'config' / URDF_NAME)
     candidates.append(Path(sys.prefix) / 'share' / 'ddarm' / 'config' / URDF_NAME)
     for candidate in candidates:
         if candidate.is_file():

@@ -11,18 +11,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ddarm_control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega_rule_computed_torque
-from ddarm_control.laws import CONTROLLERS
-from ddarm_sim.trajectory import paper_trajectory
-from ddarm_tuner.bags import checked_output_path
-from ddarm_tuner.episodes import EpisodeSpec, gains_from_omega
-from ddarm_tuner.batch import simulate_batch
-from ddarm_tuner.procedures import omega_procedure
-from ddarm_tuner.search import INDICES, omega_starts, search_gains
-from ddarm_tuner.tune import with_gains
+from ddarm.control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega_rule_computed_torque
+from ddarm.control.laws import CONTROLLERS
+from ddarm.motion.programmed import paper_trajectory
+from ddarm.recording.bags import checked_output_path
+from ddarm.episodes.spec import EpisodeSpec, gains_from_omega
+from ddarm.episodes.engine import simulate_batch
+from ddarm.tuning.procedures import omega_procedure
+from ddarm.tuning.search import INDICES, omega_starts, search_gains
+from ddarm.tuning.tune import with_gains
 
 if TYPE_CHECKING:  # the episodes run through a ROS session; the claims and tables need no ROS
-    from ddarm_tuner.ros_episode import GraphSession
+    from ddarm.ros.driver import GraphSession
 
 PAPER_DELAYS = {'pd_gravity': 0, 'computed_torque': 1}
 # Table 4's cases: (trajectory, T, Δ).
@@ -137,7 +137,7 @@ class Reproduction:
 
     def _episode(self, session: GraphSession, spec: EpisodeSpec, name: str) -> dict:
         """One recorded episode through the graph, scored from its bag; the row fields every table shares."""
-        from ddarm_tuner.ros_episode import record_and_score
+        from ddarm.ros.driver import record_and_score
 
         bag = checked_output_path(self.out / 'bags' / name)
         _, scored = record_and_score(session, spec, bag, command=self.command)

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ddarm_control.gains import (computed_torque_error_external, computed_torque_error_mass, pd_gravity_error,
+from ddarm.control.gains import (computed_torque_error_external, computed_torque_error_mass, pd_gravity_error,
                                  smallest_omega)
-from ddarm_sim.trajectory import paper_trajectory
-from ddarm_tuner.episodes import EpisodeError, EpisodeSpec, gains_from_omega, load_arm, run_episode
+from ddarm.motion.programmed import paper_trajectory
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega, load_arm, run_episode
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
-from ddarm_sim.model import Arm
+from ddarm.errors import DdarmError
+from ddarm.physics.arm import Arm
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')
 MAX_DELAY = 100

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ddarm_sim.errors import DdarmError
+from ddarm.errors import DdarmError
 
 # Refused before any work (FAULTS.md 6): far beyond the joint count of any arm we run.
 MAX_JOINTS = 64

@@ -7,9 +7,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ddarm_control.gains import SEARCH_START_OMEGAS
-from ddarm_tuner.episodes import EpisodeSpec, run_episode
-from ddarm_tuner.search import SearchResult, omega_starts, search_gains
+from ddarm.control.gains import SEARCH_START_OMEGAS
+from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.tuning.search import SearchResult, omega_starts, search_gains
 
 INDEX_KEYS = {'2.5': 'I1', '3.2': 'I'}
 
