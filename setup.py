@@ -14,6 +14,7 @@ setup(
     license='Apache-2.0',
     python_requires='>=3.10',
     packages=find_packages(include=['ddarm', 'ddarm.*', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner']),
+    package_data={'ddarm.paper': ['data/*.yaml']},  # the paper's motions and settings
     # ros2 run finds a package through its ament index marker and runs lib/<package>/<executable>:
     # one marker and one executable folder per Python package the user names.
     data_files=[

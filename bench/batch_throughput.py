@@ -21,7 +21,8 @@ import pinocchio as pin
 
 from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.bench import REFERENCE, peak_rss_mib, perturbed_gains, run_bench
-from ddarm.episodes.spec import EpisodeSpec, load_arm
+from ddarm.episodes.spec import EpisodeSpec
+from ddarm.physics.arm import load_arm
 from ddarm.tuning.search import omega_starts, search_gains
 
 
@@ -69,16 +70,16 @@ def memory(batches: int, size: int = 1000) -> dict:
 
 
 def searches(budget: int = 1000) -> dict:
-    """Wall time of (3.2) searches of computed torque from the ω = 5, 10, 15, 20 rules."""
+    """Wall time of I (3.2) searches of computed torque from the ω = 5, 10, 15, 20 rules."""
     template = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, delay=1)
     kp, kv = omega_starts(template, [5.0, 10.0, 15.0, 20.0])
     figures = {}
     for method in ('cma', 'nelder-mead'):
         started = time.perf_counter()
-        result = search_gains(template, index='3.2', start_kp=kp, start_kv=kv, budget=budget, method=method, seed=0)
+        result = search_gains(template, index='I', start_kp=kp, start_kv=kv, budget=budget, method=method, seed=0)
         figures[method] = {'wall_s': time.perf_counter() - started, 'episodes': result.episodes,
                            'batches': result.batches, 'index': result.index,
-                           'best_start': float(np.min(simulate_batch(template, kp, kv).index_3_2))}
+                           'best_start': float(np.min(simulate_batch(template, kp, kv).I))}
     return figures
 
 
@@ -113,7 +114,7 @@ def main() -> None:
           f"{mem['peak_rss_after_mib']:.0f} MiB after {mem['batches']} more ({mem['episodes_per_s']:.0f} episodes/s)")
     for method, search in figures['searches'].items():
         print(f"search {method}: {search['episodes']} episodes in {search['batches']} batches, "
-              f"{search['wall_s']:.1f} s; (3.2) {search['best_start']:.4f} at the best start -> {search['index']:.4f}")
+              f"{search['wall_s']:.1f} s; I (3.2) {search['best_start']:.4f} at the best start -> {search['index']:.4f}")
 
 
 if __name__ == '__main__':

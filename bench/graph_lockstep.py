@@ -10,7 +10,7 @@ import json
 import os
 
 from ddarm.episodes.spec import EpisodeSpec
-from ddarm.ros.driver import run_graph_episode
+from ddarm.ros.session import run_graph_episode
 
 
 def main() -> None:

@@ -16,14 +16,16 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm.control.gains import omega_rule_gains
-from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint,
-                                SampledController, checked_delay, checked_gains, make_law)
+from ddarm.control.gains import gains_from_parameters
+from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint, SampledController,
+                                checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
 from ddarm.physics.arm import Arm, ModelError
+from ddarm.physics.dynamics import chain_from_model
 from ddarm.ros.interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, Reference, descriptor, joint_state_msg, plain_parameters,
                                      proposed_values, read_joint_state, read_reference,
-                                     refuse_undeclared_parameters, run_node, undeclared_overrides)
+                                     refuse_undeclared_parameters, undeclared_overrides)
+from ddarm.ros.executable import run_node
 from ddarm.samples import MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
@@ -31,17 +33,9 @@ MAX_WAITING_STATES = 10_000
 
 
 def effective_gains(law: str, values: dict, model: Arm, reference: Reference | None):
-    """K_p, K_v from the parameters: the ω rule when omega > 0 (PD + gravity: m_ii at q_f), else kp, kv."""
-    omega = values['omega']
-    if not (np.isfinite(omega) and omega >= 0):
-        raise GainError(f'omega must be finite and not negative, got {omega!r}')
-    if omega == 0:
-        if values['kp'] is None or values['kv'] is None:
-            raise GainError('set kp and kv (one per joint), or omega > 0')
-        return checked_gains(values['kp'], values['kv'], model.dof)
-    if law == 'pd_gravity' and reference is None:
-        return None  # the PD + gravity rule needs q_f: decided when the reference arrives
-    return omega_rule_gains(law, model, omega, None if reference is None else reference.q[-1])
+    """K_p, K_v from the parameters (`gains_from_parameters`); None while the PD + gravity rule waits for q_f."""
+    return gains_from_parameters(law, values['omega'], values['kp'], values['kv'], model,
+                                 None if reference is None else reference.q[-1])
 
 
 class ControllerNode(Node):
@@ -61,18 +55,21 @@ class ControllerNode(Node):
         self._declare_parameters()
         values = proposed_values(self, ())
         self.model = Arm.from_urdf(values['urdf'] or None)
+        self.chain = chain_from_model(self.model.model)
         self.joints = list(values['joints']) if values['joints'] else self.model.joint_names
         if self.joints != self.model.joint_names:
             raise ModelError(f'joints {self.joints} must be the URDF joints in URDF order {self.model.joint_names}')
-        unknown = undeclared_overrides(self)
+        unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
         if unknown:
             raise GainError(f'unknown parameters {unknown} (not {law} parameters: a typo?)')
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
         self.reference: Reference | None = None
+        self.reference_gravity: np.ndarray | None = None  # Ĝ(q^d) at each reference sample, for PD + gravity
         gains = effective_gains(law, values, self.model, None) or (np.ones(self.model.dof),) * 2
         self.controller = SampledController(
-            make_law(law, self.model, *gains, *self._friction(values)), checked_delay(values['compute_delay_steps']))
+            make_law(law, self.chain, *gains, *self._friction(values)), checked_delay(values['compute_delay_steps']))
+        warm_up(self.chain)
         self.gains_ready = values['omega'] == 0 or law == 'computed_torque'
         refuse_undeclared_parameters(self, law)
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -117,17 +114,8 @@ class ControllerNode(Node):
             self.declare_parameter(name, default, described)
 
     def _friction(self, values: dict) -> tuple:
-        friction = []
-        for name in ('viscous_friction', 'coulomb_friction'):
-            value = values[name]
-            if value is None or len(value) == 0:
-                friction.append(None)
-                continue
-            array = np.array(value, dtype=float)
-            if array.shape != (self.model.dof,) or not np.all(np.isfinite(array)) or np.any(array < 0):
-                raise GainError(f'{name} needs {self.model.dof} finite values >= 0, got {value!r}')
-            friction.append(array)
-        return tuple(friction)
+        return tuple(checked_friction(name, values[name] if values[name] is not None and len(values[name]) else None,
+                                      self.model.dof) for name in ('viscous_friction', 'coulomb_friction'))
 
     def _check_parameters(self, changes) -> SetParametersResult:
         values = proposed_values(self, changes)
@@ -144,7 +132,7 @@ class ControllerNode(Node):
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
         self._set_gains(values)
-        self.controller.law = make_law(self.law_name, self.model, self.controller.law.kp, self.controller.law.kv,
+        self.controller.law = make_law(self.law_name, self.chain, self.controller.law.kp, self.controller.law.kv,
                                        *self._friction(values))
         if values['compute_delay_steps'] != self.controller.delay:
             self.controller.set_delay(values['compute_delay_steps'])
@@ -174,6 +162,7 @@ class ControllerNode(Node):
             self.refused_messages += 1
             self.get_logger().error(f'refused: {error}')
             return
+        self.reference_gravity = gravity_feedforward(self.model, self.reference.q)
         self._set_gains(proposed_values(self, ()))
         self.configuration += 1
         self.get_logger().info(f'reference of {len(self.reference.times)} samples; {self._describe()}')
@@ -232,7 +221,8 @@ class ControllerNode(Node):
     def _command(self, state) -> None:
         q_ref, v_ref, a_ref = self.reference.point(state.n)
         measurement = Measurement(state.q, state.v, q_ref, v_ref)
-        torque = self.controller.step(measurement, ReferencePoint(q_ref, v_ref, a_ref))
+        gravity_ref = self.reference_gravity[min(state.n, len(self.reference_gravity) - 1)]
+        torque = self.controller.step(measurement, ReferencePoint(q_ref, v_ref, a_ref), gravity_ref)
         if not np.all(np.isfinite(torque)):
             self.get_logger().error(f'no command for sample {state.n}: the law gave {torque.tolist()}')
             return

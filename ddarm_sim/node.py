@@ -18,14 +18,17 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from ddarm.physics.arm import Arm, ModelError
-from ddarm.physics.plant import MAX_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
+from ddarm.physics.dynamics import chain_from_model
+from ddarm.physics.plant import (MAX_SUBSTEPS, Plant, PlantError, PlantOptions, checked_mass_scale,
+                                 disturbed_initial_state, warm_up)
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, plain_parameters, proposed_values,
-                                     read_joint_state, refuse_undeclared_parameters, run_node, time_msg,
+                                     read_joint_state, refuse_undeclared_parameters, time_msg,
                                      undeclared_overrides)
+from ddarm.ros.executable import run_node
 from ddarm.samples import MessageError
-from ddarm.motion.programmed import TRAJECTORY_ENDPOINTS, paper_trajectory
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, paper_trajectory
 
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
@@ -62,9 +65,8 @@ def plant_settings(values: dict, dof: int) -> PlantSettings:
         coulomb_friction=_optional_array(values['coulomb_friction']),
         external_torque=_optional_array(values['external_torque'])).checked(dof)
     mass_scale = _optional_array(values['mass_scale'])
-    if mass_scale is not None and (mass_scale.shape != (dof,) or np.any(mass_scale <= 0)
-                                   or not np.all(np.isfinite(mass_scale))):
-        raise PlantError(f"mass_scale needs {dof} finite positive values, got {values['mass_scale']!r}")
+    if mass_scale is not None:
+        checked_mass_scale(mass_scale, dof)
     trajectory = values['trajectory']
     if trajectory == 0:
         q0 = _optional_array(values['initial_position'])
@@ -75,8 +77,8 @@ def plant_settings(values: dict, dof: int) -> PlantSettings:
             if state.shape != (dof,) or not np.all(np.isfinite(state)):
                 raise PlantError(f'{name} needs {dof} finite values, got {values[name]!r}')
     else:
-        if trajectory not in TRAJECTORY_ENDPOINTS:
-            raise PlantError(f'trajectory must be 0 (initial_position) or one of {sorted(TRAJECTORY_ENDPOINTS)}')
+        if trajectory not in PAPER_TRAJECTORIES:
+            raise PlantError(f'trajectory must be 0 (initial_position) or one of {list(PAPER_TRAJECTORIES)}')
         if not 0 <= values['tau'] <= values['duration']:
             raise PlantError(f"tau must be within [0, duration = {values['duration']}] s, got {values['tau']}")
         motion = paper_trajectory(trajectory, values['duration'])
@@ -103,7 +105,9 @@ class PlantNode(Node):
         self._declare_parameters()
         self.arm = Arm.from_urdf(self.get_parameter('urdf').value or None)
         self.joints = self.arm.joint_names
+        self.chain = chain_from_model(self.arm.model)
         self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        warm_up(self.chain)
         refuse_undeclared_parameters(self, 'plant')
         self.add_on_set_parameters_callback(self._check_parameters)
 
@@ -129,7 +133,7 @@ class PlantNode(Node):
         self.counters = {'refused_commands': 0, 'stale_commands': 0, 'duplicate_commands': 0, 'deadline_misses': 0}
         self.tick_times: list[float] = []
         self.began = 0.0
-        unknown = undeclared_overrides(self)
+        unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
         if unknown:
             raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
         if self.get_parameter('autostart').value:
@@ -189,9 +193,8 @@ class PlantNode(Node):
         """
         values = self._parameter_values()
         self.settings = plant_settings(values, self.arm.dof)
-        arm = self.arm if self.settings.mass_scale is None else Arm.from_urdf(
-            self.arm.urdf_path, self.settings.mass_scale)
-        self.plant = Plant(arm, self.settings.options, self.settings.q0, self.settings.v0)
+        self.plant = Plant(self.chain, self.settings.options, self.settings.q0, self.settings.v0,
+                           self.settings.mass_scale)
         self.latest_command, self.latest_command_sample = None, -1
         self.counters = dict.fromkeys(self.counters, 0)
         self.tick_times = []

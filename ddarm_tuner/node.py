@@ -6,21 +6,19 @@ import sys
 import time
 
 import numpy as np
-import rclpy
 import yaml
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
 from ddarm.control.laws import CONTROLLERS
-from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
-from ddarm.ros.interface import (descriptor, parameter_file_refusal, proposed_values, refuse_undeclared_parameters,
-                                     undeclared_overrides)
+from ddarm.ros.executable import run_executable
+from ddarm.ros.interface import descriptor, proposed_values, refuse_undeclared_parameters, undeclared_overrides
 from ddarm.recording.bags import STORAGES, BagError, score_bag
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode
 from ddarm.interrupts import Interrupted, stop_on_signals
-from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError, episode_record
+from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError
+from ddarm.ros.node_parameters import episode_record
 from ddarm.recording.runs import DEFAULT_ROOT, RunFolder
 
 
@@ -36,6 +34,7 @@ class TunerNode(GraphDriver):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('tuner', **kwargs)
+        self._given_overrides = tuple(kwargs.get('parameter_overrides') or ())  # rclpy has no public view
         double_array = Parameter.Type.DOUBLE_ARRAY
         declared = [
             ('controller', 'computed_torque', descriptor(f'the law to drive: one of {CONTROLLERS}')),
@@ -66,7 +65,7 @@ class TunerNode(GraphDriver):
             raise
 
     def _checked_sweep(self) -> list:
-        unknown = undeclared_overrides(self)
+        unknown = undeclared_overrides(self, self._given_overrides)
         if unknown:
             raise EpisodeError(f'unknown parameters {unknown} (not tuner parameters: a typo?)')
         self.values = proposed_values(self, ())
@@ -127,7 +126,7 @@ class TunerNode(GraphDriver):
             scored = score_bag(path)
             run.add_episode({'name': name, 'bag': str(path), **{key: scored[key] for key in (
                 'I1', 'I2', 'I', 'diverged', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque',
-                'spec')}, 'graph_indices': result.indices})
+                'spec')}, 'graph_indices': result.indices()})
             self.get_logger().info(f"{name}: I1 {scored['I1']:.6g}  I2 {scored['I2']:.6g}  I {scored['I']:.6g}"
                                    f'  (scored from {path})')
 
@@ -138,50 +137,40 @@ def main(args=None) -> int:
     marked incomplete, the summary `interrupted`)."""
     args = sys.argv if args is None else args
     try:
-        parameter_files = read_parameter_files(args)
-    except ParameterFileError as error:
-        print(f'tuner: refused to start: {error}', file=sys.stderr, flush=True)
-        return 2
-    # Our handlers, not rclpy's: a signal then stops the sweep at once, wherever it is.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    try:
+        # Our handlers, not rclpy's: a signal then stops the sweep at once, wherever it is.
         with stop_on_signals():
-            try:
-                node = TunerNode()
-                refuse_unconfigured(parameter_files, node.get_fully_qualified_name())
-            except (EpisodeError, BagError, ParameterException, ParameterFileError) as error:
-                if node is None and parameter_files:  # refused on defaults: a file for another node is the cause
-                    error = parameter_file_refusal(parameter_files, 'tuner') or error
-                print(f'tuner: refused to start: {error}', file=sys.stderr, flush=True)
-                return 2
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            name = node.values['run_name'] or time.strftime('tuner-%Y%m%d-%H%M%S')
-            try:
-                run = RunFolder(name, node.values['output_root'], command=' '.join(args))
-            except BagError as error:
-                print(f'tuner: {error}', file=sys.stderr, flush=True)
-                return 2
-            with run:
-                try:
-                    node.run_sweep(executor, run)
-                except (GraphEpisodeError, BagError) as error:
-                    print(f'tuner: {error}', file=sys.stderr, flush=True)
-                    run.finish('failed', error=str(error))
-                    return 2
-                run.finish('complete')
-        return 0
+            return run_executable('tuner', TunerNode, (EpisodeError, BagError), args, lambda node: sweep(node, args),
+                                  out=sys.stderr, signal_handler_options=SignalHandlerOptions.NO, follow=False)
     except Interrupted as stop:
         print(f'tuner: {stop}; the run is marked interrupted', file=sys.stderr, flush=True)
         return stop.exit_code
+
+
+def sweep(node: TunerNode, args) -> int:
+    """The started tuner's sweep into a new run folder: 0 when it completed, 2 when it failed."""
+    executor = SingleThreadedExecutor()
+    try:
+        executor.add_node(node)
+        name = node.values['run_name'] or time.strftime('tuner-%Y%m%d-%H%M%S')
+        try:
+            run = RunFolder(name, node.values['output_root'], command=' '.join(args))
+        except BagError as error:
+            print(f'tuner: {error}', file=sys.stderr, flush=True)
+            return 2
+        with run:
+            try:
+                node.run_sweep(executor, run)
+            except (GraphEpisodeError, BagError) as error:
+                print(f'tuner: {error}', file=sys.stderr, flush=True)
+                run.finish('failed', error=str(error))
+                return 2
+            run.finish('complete')
+        return 0
     except ExternalShutdownException:
         print('tuner: ROS was shut down under the sweep; the run is marked failed', file=sys.stderr, flush=True)
         return 2
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        executor.shutdown()
 
 
 if __name__ == '__main__':

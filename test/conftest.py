@@ -35,6 +35,15 @@ def pytest_configure(config):
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 
+@pytest.fixture(scope='session', autouse=True)
+def compiled_loop():
+    """The compiled loop built once, before any test starts a node process that loads it (a fresh checkout
+    compiles it here, about a minute on two cores, instead of in every node, past their peer timeouts)."""
+    from ddarm.episodes.engine import warm_up
+
+    warm_up()
+
+
 @pytest.fixture
 def ros_context():
     """A fresh rclpy context for one test, shut down afterwards."""

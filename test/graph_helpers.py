@@ -6,7 +6,8 @@ from rclpy.parameter import Parameter
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
 from ddarm.episodes.spec import plan_episode
-from ddarm.ros.driver import GraphDriver, node_parameters
+from ddarm.ros.driver import GraphDriver
+from ddarm.ros.node_parameters import node_parameters
 
 
 def overrides(values: dict) -> list:

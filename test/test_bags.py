@@ -17,8 +17,10 @@ from ddarm.recording.bags import (PUBLISHERS_KEY, SAMPLED_TOPICS, STORAGES, TOPI
                               EpisodeBagWriter, bag_status, checked_output_path, child_path, deserialize,
                               read_episode_bag, score_bag)
 from ddarm.cli.main import main
-from ddarm.episodes.spec import EpisodeSpec, run_episode
-from ddarm.ros.driver import episode_record, run_graph_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec
+from ddarm.ros.node_parameters import episode_record
+from ddarm.ros.session import run_graph_episode
 from graph_helpers import InProcessGraph
 
 SPECS = {
@@ -61,9 +63,9 @@ def test_scores_from_the_bag_equal_the_in_process_indices(ros_context, tmp_path,
     spec = SPECS[controller]
     record(ros_context, spec, tmp_path / 'bag', storage)
     scored, reference = score_bag(tmp_path / 'bag'), run_episode(spec)
-    assert np.any(np.abs(reference.command) > reference.plan.torque_limit)  # the limits matter here
+    assert np.any(np.abs(reference.scored('command')) > reference.plan.torque_limit)  # the limits matter here
     for key in ('I1', 'I2', 'I'):
-        assert scored[key] == pytest.approx(reference.indices[key], rel=1e-9)
+        assert scored[key] == pytest.approx(reference.indices()[key], rel=1e-9)
     assert scored['spec'] == spec.to_dict()
 
 
@@ -198,7 +200,7 @@ def test_output_paths_that_escape_or_overwrite_are_refused(tmp_path):
 def test_separate_processes_record_a_scorable_bag(tmp_path):
     spec = SPECS['pd_gravity']
     result = run_graph_episode(spec, bag=tmp_path / 'bag', storage='sqlite3')
-    assert score_bag(tmp_path / 'bag')['I'] == pytest.approx(result.indices['I'], rel=1e-12)
+    assert score_bag(tmp_path / 'bag')['I'] == pytest.approx(result.indices()['I'], rel=1e-12)
 
 
 

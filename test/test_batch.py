@@ -1,17 +1,22 @@
-"""The batch engine against the scalar runner, episode by episode (MODEL.md 5-8)."""
+"""The batch engine against the plain reference loop (reference_episode.py), episode by episode (MODEL.md 5-8),
+and the compiled dynamics against Pinocchio's own algorithms."""
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from ddarm.physics.arm import ModelError
+from ddarm.physics.dynamics import (chain_from_model, forward_dynamics, inverse_dynamics_at, joint_space_inertia,
+                                    joint_transforms, workspace)
 from ddarm.motion.programmed import ProgrammedMotion
-from ddarm.episodes.engine import MAX_BATCH, BatchError, chain_from_model, simulate_batch
+from ddarm.episodes.engine import MAX_BATCH, BatchError, run_episode, simulate_batch
 from ddarm.cli.main import main
-from ddarm.episodes.spec import EpisodeSpec, plan_motion, run_episode
+from ddarm.episodes.spec import EpisodeSpec, plan_motion
+from reference_episode import reference_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
 PD_10 = dict(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))
@@ -22,10 +27,11 @@ GAINS = {
                    [[560.0, 540.0, 70.0], [700.0, 400.0, 90.0], [10.0] * 3]),
 }
 TOLERANCE = 1e-9
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def assert_member_matches(batch, member, scalar):
-    """Member `member` of a batch is the scalar episode: indices to 1e-9 relative, same divergence."""
+    """Member `member` of a batch is the reference episode: indices to 1e-9 relative, same divergence."""
     for key, value in scalar.indices.items():
         assert batch.indices(member)[key] == pytest.approx(value, rel=TOLERANCE, abs=1e-300), key
     assert bool(batch.diverged[member]) == scalar.diverged
@@ -37,47 +43,52 @@ def assert_member_matches(batch, member, scalar):
 @pytest.mark.parametrize('delay', [0, 1, 2])
 @pytest.mark.parametrize('torque_limit', ['none', 'paper'])
 @pytest.mark.parametrize('tau', [0.0, 0.1])
-def test_every_member_is_the_scalar_episode(controller, delay, torque_limit, tau):
+def test_every_member_is_the_reference_episode(controller, delay, torque_limit, tau):
     kp, kv = GAINS[controller]
     template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], delay=delay, torque_limit=torque_limit,
                            tau=tau)
     batch = simulate_batch(template, kp, kv)
     for member in range(len(kp)):
-        scalar = run_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]))
+        scalar = reference_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]))
         assert_member_matches(batch, member, scalar)
 
 
 @pytest.mark.parametrize('controller, delay', [('computed_torque', 1), ('computed_torque', 2), ('pd_gravity', 0)])
-def test_a_diverging_member_stops_where_run_episode_does_and_the_others_go_on(controller, delay):
+def test_a_diverging_member_stops_where_the_reference_does_and_the_others_go_on(controller, delay):
     kp, kv = GAINS[controller]
     template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], delay=delay, tau=0.1)
     batch = simulate_batch(template, kp, kv)
     assert batch.diverged.tolist() == [False, False, True]
     assert 0 < batch.diverged_at[2] < batch.plan.k_max
     for member in range(3):
-        assert_member_matches(batch, member, run_episode(dataclasses.replace(template, kp=kp[member],
-                                                                             kv=kv[member])))
+        assert_member_matches(batch, member, reference_episode(dataclasses.replace(template, kp=kp[member],
+                                                                                   kv=kv[member])))
 
 
-def test_plant_options_and_mass_mismatch_match_the_scalar_episode():
+def test_plant_options_and_mass_mismatch_match_the_reference_episode():
     template = EpisodeSpec(**CT_15, delay=1, tau=0.1, torque_limit='paper', external_torque=(5.0, 5.0, 1.0),
                            viscous_friction=(1.0, 1.0, 0.5), coulomb_friction=(0.5, 0.5, 0.2),
                            mass_scale=(1.0, 1.1, 0.9))
     kp, kv = GAINS['computed_torque']
     batch = simulate_batch(template, kp, kv)
     for member in range(3):
-        assert_member_matches(batch, member, run_episode(dataclasses.replace(template, kp=kp[member],
-                                                                             kv=kv[member])))
+        assert_member_matches(batch, member, reference_episode(dataclasses.replace(template, kp=kp[member],
+                                                                                   kv=kv[member])))
 
 
-def test_a_batch_of_one_is_the_scalar_episode_with_its_series():
+def test_a_batch_of_one_is_the_reference_episode_with_its_series():
     template = EpisodeSpec(**PD_10, delay=0, tau=0.1, torque_limit='paper')
     batch = simulate_batch(template, [template.kp], [template.kv], series=True)
-    scalar = run_episode(template)
+    scalar = reference_episode(template)
     assert batch.size == 1
     assert_member_matches(batch, 0, scalar)
     for name in ('q', 'v', 'command', 'torque'):
-        np.testing.assert_allclose(getattr(batch, name)[0], getattr(scalar, name), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(batch.scored(name), getattr(scalar, name), rtol=1e-9, atol=1e-9)
+    # run_episode is this batch of one, series and all.
+    alone = run_episode(template)
+    assert alone.indices() == batch.indices()
+    for name in ('q', 'v', 'command', 'torque'):
+        np.testing.assert_array_equal(alone.scored(name), batch.scored(name))
 
 
 def test_the_series_of_a_diverged_member_end_where_it_was_scored():
@@ -100,7 +111,7 @@ def test_per_episode_tau_limits_and_mass_scale_are_each_members_own_episode():
     for member in range(3):
         spec = dataclasses.replace(template, kp=kp[member], kv=kv[member], tau=tau[member],
                                    torque_limit=tuple(limits[member]), mass_scale=tuple(scales[member]))
-        assert_member_matches(batch, member, run_episode(spec))
+        assert_member_matches(batch, member, reference_episode(spec))
 
 
 def test_the_result_does_not_depend_on_the_number_of_threads():
@@ -109,7 +120,7 @@ def test_the_result_does_not_depend_on_the_number_of_threads():
     kv = 30.0 * np.exp(0.3 * rng.normal(size=(37, 3)))
     template = EpisodeSpec(**CT_15, tau=0.1)
     one, two = simulate_batch(template, kp, kv, threads=1), simulate_batch(template, kp, kv, threads=2)
-    np.testing.assert_array_equal(one.index_3_2, two.index_3_2)
+    np.testing.assert_array_equal(one.I, two.I)
     np.testing.assert_array_equal(one.diverged_at, two.diverged_at)
 
 
@@ -121,8 +132,7 @@ def test_the_default_substeps_keep_the_indices_within_1e_6_of_40_substeps(case, 
     for spec in (EpisodeSpec(**case, delay=delay), EpisodeSpec(**case, delay=delay, tau=0.1, torque_limit='paper')):
         default = simulate_batch(spec, kp, kv)
         reference = simulate_batch(dataclasses.replace(spec, substeps=40), kp, kv)
-        for got, want in ((default.index_2_5, reference.index_2_5), (default.torque_index, reference.torque_index),
-                          (default.index_3_2, reference.index_3_2)):
+        for got, want in ((default.I1, reference.I1), (default.I2, reference.I2), (default.I, reference.I)):
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
 
 
@@ -161,7 +171,7 @@ GENERIC_URDF = """<?xml version="1.0"?>
 
 
 @pytest.mark.parametrize('controller', ['computed_torque', 'pd_gravity'])
-def test_any_serial_urdf_arm_runs_as_in_the_scalar_runner(tmp_path, controller):
+def test_any_serial_urdf_arm_runs_as_in_the_reference_loop(tmp_path, controller):
     urdf = tmp_path / 'generic5.urdf'
     urdf.write_text(GENERIC_URDF)
     motion = ProgrammedMotion(np.array([0.1, 0.0, -0.3, 0.1, 0.5]), np.array([0.8, 0.2, 0.4, -0.1, -0.5]), 1.0)
@@ -172,8 +182,76 @@ def test_any_serial_urdf_arm_runs_as_in_the_scalar_runner(tmp_path, controller):
     plan = plan_motion(template, motion, np.arange(101) * 0.01)
     batch = simulate_batch(template, kp, kv, plan=plan)
     for member in range(2):
-        scalar = run_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]), plan)
+        scalar = reference_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]), plan)
         assert_member_matches(batch, member, scalar)
+
+
+def pinocchio_model(name):
+    """The paper's arm or the generic one above, with a non-zero armature on every joint."""
+    model = pin.buildModelFromUrdf(str(ROOT / 'config' / 'ddarm.urdf')) if name == 'paper' else (
+        pin.buildModelFromXML(GENERIC_URDF))
+    model.armature = np.linspace(0.05, 0.3, model.nv)
+    return model
+
+
+def random_states(model, count, seed):
+    rng = np.random.default_rng(seed)
+    return (rng.uniform(-np.pi, np.pi, (count, model.nv)), rng.uniform(-3, 3, (count, model.nv)),
+            rng.uniform(-10, 10, (count, model.nv)))
+
+
+def lanes(states):
+    """(m, n) states as the compiled functions take them: (n, m), the states as lanes."""
+    return np.ascontiguousarray(np.transpose(states))
+
+
+def compiled_mass_matrix_and_acceleration(chain, q, v, torque, mass_scale):
+    """M(q) by the compiled CRBA and q̈ by the compiled forward dynamics, for the states of q, v, torque (m, n)."""
+    n, count = chain.dof, len(q)
+    q, v, torque, scale = lanes(q), lanes(v), lanes(torque), np.ascontiguousarray(np.tile(mass_scale, (count, 1)).T)
+    parent, kind, axis, placement_rotation, placement_translation, armature, _, mass, lever, inertia = chain.arrays()
+    work = workspace(n, count)
+    rotation, translation = work[0], work[1]
+    composite_mass, first_moment, origin_inertia, mass_matrix = work[8], work[9], work[10], work[13]
+    joint_transforms(kind, axis, placement_rotation, placement_translation, q, rotation, translation, count)
+    joint_space_inertia(parent, kind, axis, armature, mass, lever, inertia, scale, rotation, translation,
+                        composite_mass, first_moment, origin_inertia, mass_matrix, count)
+    mass_matrix = np.moveaxis(mass_matrix.copy(), -1, 0)
+    acceleration = np.empty((n, count))
+    forward_dynamics(chain.arrays(), scale, q, v, torque, workspace(n, count), acceleration, count)
+    return mass_matrix, acceleration.T
+
+
+def scaled(model, mass_scale):
+    """A copy of `model` whose link i has mass and central inertia times mass_scale[i], as the plant's."""
+    model = model.copy()
+    for joint_id, factor in enumerate(mass_scale, start=1):
+        inertia = model.inertias[joint_id]
+        model.inertias[joint_id] = pin.Inertia(factor * inertia.mass, inertia.lever, factor * inertia.inertia)
+    return model
+
+
+@pytest.mark.parametrize('name', ['paper', 'generic'])
+@pytest.mark.parametrize('with_scale', [False, True])
+def test_the_compiled_dynamics_are_pinocchios_rnea_crba_and_aba(name, with_scale):
+    # Random states, armature on every joint, revolute and prismatic joints (generic), a plant mass scale.
+    model = pinocchio_model(name)
+    chain = chain_from_model(model)
+    mass_scale = np.linspace(0.8, 1.3, model.nv) if with_scale else np.ones(model.nv)
+    plant = scaled(model, mass_scale)
+    data = plant.createData()
+    q, v, a = random_states(model, 40, seed=11)
+    torque = inverse_dynamics_at(chain, q, v, a, mass_scale=mass_scale if with_scale else None)
+    mass_matrix, acceleration = compiled_mass_matrix_and_acceleration(chain, q, v, torque, mass_scale)
+    for m in range(len(q)):
+        expected_torque = pin.rnea(plant, data, q[m], v[m], a[m])
+        np.testing.assert_allclose(torque[m], expected_torque, rtol=1e-12, atol=1e-11 * np.max(np.abs(expected_torque)))
+        upper = pin.crba(plant, data, q[m])
+        expected_mass = np.triu(upper) + np.triu(upper, 1).T
+        np.testing.assert_allclose(mass_matrix[m], expected_mass, rtol=1e-12, atol=1e-12 * np.max(expected_mass))
+        expected_acceleration = pin.aba(plant, data, q[m], v[m], torque[m])
+        np.testing.assert_allclose(expected_acceleration, a[m], rtol=1e-9, atol=1e-9)  # Pinocchio's own round trip
+        np.testing.assert_allclose(acceleration[m], expected_acceleration, rtol=1e-10, atol=1e-10)
 
 
 def test_the_chain_refuses_joints_other_than_revolute_and_prismatic():

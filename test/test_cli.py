@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from ddarm.cli.main import main
-from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec
 
 
 def run_json(capsys, *arguments):
@@ -25,7 +26,7 @@ def test_episode_json_has_the_indices_and_matches_the_core(capsys, controller, t
     assert {'I1', 'I2', 'I', 'diverged', 'spec', 'command'} <= set(summary)
     assert summary['I'] == pytest.approx(summary['I1'] + summary['I2'], rel=1e-12)
     spec = EpisodeSpec(**summary['spec'])
-    assert run_episode(spec).indices['I'] == summary['I']
+    assert run_episode(spec).indices()['I'] == summary['I']
     assert summary['command'].startswith('ddarm episode --controller')
 
 

@@ -8,7 +8,8 @@ import pytest
 from ddarm.control.gains import computed_torque_error_external
 from ddarm.physics.arm import Arm
 from ddarm.motion.programmed import paper_trajectory
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, plan_episode, plan_motion, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, plan_episode, plan_motion
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
 PD_10 = dict(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))
@@ -26,8 +27,8 @@ def test_computed_torque_errors_follow_the_critically_damped_solution_of_2_8():
     # The zero-order hold lags the continuous law by Δ/2 on average, which changes the
     # response by about ωΔ/2 of its size; allow twice ωΔ of the largest error.
     tolerance = 2 * omega * period * np.max(np.abs(exact))
-    assert np.max(np.abs(result.errors - exact)) <= tolerance
-    assert not result.diverged
+    assert np.max(np.abs(result.scored('errors') - exact)) <= tolerance
+    assert not result.diverged[0]
 
 
 def test_computed_torque_settles_at_the_external_torque_steady_state_error():
@@ -39,7 +40,7 @@ def test_computed_torque_settles_at_the_external_torque_steady_state_error():
     arm = Arm.from_urdf()
     expected = computed_torque_error_external(arm.mass_matrix(motion.qf), np.full(3, 225.0),
                                               np.array(spec.external_torque))
-    np.testing.assert_allclose(result.errors[-1], expected, rtol=0.01)
+    np.testing.assert_allclose(result.scored('errors')[-1], expected, rtol=0.01)
 
 
 @pytest.mark.parametrize('delay', [0, 1, 2])
@@ -47,12 +48,13 @@ def test_each_command_uses_the_state_of_sample_n_minus_d(delay):
     spec = EpisodeSpec(**CT_15, delay=delay, tau=0.05)
     result = run_episode(spec)
     arm, plan = Arm.from_urdf(), result.plan
+    q, v, command = result.scored('q'), result.scored('v'), result.scored('command')
     for n in (0, 1, 2, 3, 40, plan.k_max):
         m = max(n - delay, 0)
-        error, rate = plan.q_ref[m] - result.q[m], plan.v_ref[m] - result.v[m]
-        expected = (arm.mass_matrix(result.q[m]) @ (plan.a_ref[n] + 225 * error + 30 * rate)
-                    + arm.bias(result.q[m], result.v[m]))
-        np.testing.assert_allclose(result.command[n], expected, rtol=1e-12, atol=1e-9)
+        error, rate = plan.q_ref[m] - q[m], plan.v_ref[m] - v[m]
+        expected = (arm.mass_matrix(q[m]) @ (plan.a_ref[n] + 225 * error + 30 * rate)
+                    + arm.bias(q[m], v[m]))
+        np.testing.assert_allclose(command[n], expected, rtol=1e-12, atol=1e-9)
 
 
 @pytest.mark.parametrize('case', [
@@ -64,8 +66,8 @@ def test_each_command_uses_the_state_of_sample_n_minus_d(delay):
          viscous_friction=(1.0, 1.0, 0.5), coulomb_friction=(0.5, 0.5, 0.2), mass_scale=(1.0, 1.1, 0.9)),
 ])
 def test_halving_the_integration_step_changes_the_indices_by_less_than_1e_4(case):
-    coarse = run_episode(EpisodeSpec(**case)).indices
-    fine = run_episode(EpisodeSpec(**case, substeps=2 * EpisodeSpec(**case).substeps)).indices
+    coarse = run_episode(EpisodeSpec(**case)).indices()
+    fine = run_episode(EpisodeSpec(**case, substeps=2 * EpisodeSpec(**case).substeps)).indices()
     for key in ('I1', 'I2', 'I'):
         assert abs(coarse[key] - fine[key]) <= 1e-4 * abs(fine[key])
 
@@ -74,10 +76,11 @@ def test_the_paper_torque_limit_clamps_the_applied_torque_and_keeps_the_sign():
     stiff = dict(controller='pd_gravity', kp=(28000.0, 27000.0, 3500.0), kv=(1760.0, 1700.0, 220.0))
     result = run_episode(EpisodeSpec(**stiff, delay=0, tau=0.1, torque_limit='paper'))
     limit = result.plan.torque_limit
-    assert np.all(np.abs(result.torque) <= limit)
-    clamped = np.abs(result.command) > limit
+    torque, command = result.scored('torque'), result.scored('command')
+    assert np.all(np.abs(torque) <= limit)
+    clamped = np.abs(command) > limit
     assert clamped.any()
-    np.testing.assert_array_equal(np.sign(result.torque[clamped]), np.sign(result.command[clamped]))
+    np.testing.assert_array_equal(np.sign(torque[clamped]), np.sign(command[clamped]))
 
 
 def test_tau_starts_the_arm_against_the_programmed_motion():
@@ -89,21 +92,22 @@ def test_tau_starts_the_arm_against_the_programmed_motion():
 
 def test_indices_are_scored_from_the_applied_torque_over_k_max():
     result = run_episode(EpisodeSpec(**PD_10, delay=0, tau=0.1, torque_limit='paper'))
-    degrees = np.degrees(np.abs(result.errors)).sum() / 100
+    indices = result.indices()
+    degrees = np.degrees(np.abs(result.scored('errors'))).sum() / 100
     weights = 10 / np.abs(result.plan.nominal).max(axis=0)
-    torque_term = (np.abs(result.torque - result.plan.nominal) * weights).sum() / 100
-    assert result.indices['I1'] == pytest.approx(degrees, rel=1e-12)
-    assert result.indices['I2'] == pytest.approx(torque_term, rel=1e-12)
-    assert result.indices['I'] == pytest.approx(degrees + torque_term, rel=1e-12)
+    torque_term = (np.abs(result.scored('torque') - result.plan.nominal) * weights).sum() / 100
+    assert indices['I1'] == pytest.approx(degrees, rel=1e-12)
+    assert indices['I2'] == pytest.approx(torque_term, rel=1e-12)
+    assert indices['I'] == pytest.approx(degrees + torque_term, rel=1e-12)
 
 
 def test_a_diverging_episode_is_flagged_with_finite_numbers():
     result = run_episode(EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3, delay=1))
-    assert result.diverged
+    assert result.diverged[0]
     summary = result.summary()
     assert summary['diverged'] and 0 < summary['diverged_at_sample'] <= 100
     assert all(np.isfinite(summary[key]) for key in ('I1', 'I2', 'I'))
-    assert np.all(np.isfinite(result.q)) and np.all(np.isfinite(result.torque))
+    assert np.all(np.isfinite(result.scored('q'))) and np.all(np.isfinite(result.scored('torque')))
 
 
 @pytest.mark.parametrize('change, problem', [

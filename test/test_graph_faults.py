@@ -22,6 +22,7 @@ from trajectory_msgs.msg import JointTrajectory
 from ddarm.control.laws import ComputedTorqueLaw, Measurement, ReferencePoint
 from ddarm_control.node import ControllerNode
 from ddarm.physics.arm import Arm
+from ddarm.physics.dynamics import chain_from_model
 from ddarm_sim.node import ENDED, RUNNING, PlantNode
 from ddarm.ros.interface import (DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS, joint_state_msg,
                                      reference_msg)
@@ -83,7 +84,7 @@ def good_state(plan, n, names=JOINTS):
 
 
 def expected_command(plan, n, kp=225.0):
-    law = ComputedTorqueLaw(Arm.from_urdf(), [kp] * 3, [30.0] * 3)
+    law = ComputedTorqueLaw(chain_from_model(Arm.from_urdf().model), [kp] * 3, [30.0] * 3)
     q, v = plan.q_ref[n] + 0.01, plan.v_ref[n] - 0.02
     return law.torque(Measurement(q, v, plan.q_ref[n], plan.v_ref[n]),
                       ReferencePoint(plan.q_ref[n], plan.v_ref[n], plan.a_ref[n]))

@@ -12,7 +12,8 @@ from sensor_msgs.msg import JointState
 
 from ddarm.ros.interface import SAMPLE_QOS, joint_state_msg
 from ddarm.recording.bags import score_bag
-from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec
 from ddarm_tuner.node import TunerNode
 from ddarm.ros.driver import GraphEpisodeError
 from process_helpers import ddarm, finished_json, start_node, stop
@@ -21,7 +22,7 @@ KP, KV = [900.0] * 3, [60.0] * 3
 
 
 def assert_in_process_numbers(summary: dict) -> None:
-    expected = run_episode(EpisodeSpec(**summary['spec'])).indices
+    expected = run_episode(EpisodeSpec(**summary['spec'])).indices()
     for key in ('I1', 'I2', 'I'):
         assert summary[key] == pytest.approx(expected[key], rel=1e-9), key
 

@@ -26,3 +26,47 @@ def test_no_core_module_loads_rclpy(module):
                            f"if name.split('.')[0] in ('rclpy', 'rosidl_runtime_py')))"],
                           capture_output=True, text=True, cwd=ROOT, check=True)
     assert done.stdout.strip() == '[]', f'{module} loads {done.stdout.strip()}'
+
+
+# The layers, upstream first: a module may import its own layer and the ones before it, never a later one.
+LAYERS = (
+    ('ddarm.errors', 'ddarm.arrays', 'ddarm.samples', 'ddarm.interrupts'),
+    ('ddarm.physics',),
+    ('ddarm.motion',),
+    ('ddarm.control',),
+    ('ddarm.episodes',),
+    ('ddarm.recording',),
+    ('ddarm.tuning',),
+    ('ddarm.paper',),
+    ('ddarm.ros',),
+    ('ddarm.cli', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner'),
+)
+
+
+def layer(module: str) -> int:
+    for number, prefixes in enumerate(LAYERS):
+        if any(module == prefix or module.startswith(prefix + '.') for prefix in prefixes):
+            return number
+    raise AssertionError(f'{module} belongs to no layer of test_layout.LAYERS')
+
+
+def imported_modules(module: str) -> set[str]:
+    """Every ddarm module `module` imports, at the top or inside a function."""
+    import ast
+
+    path = ROOT / Path(*module.split('.')).with_suffix('.py')
+    if not path.exists():
+        path = ROOT / Path(*module.split('.')) / '__init__.py'
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return {name for name in names if name.split('.')[0] in ('ddarm', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner')}
+
+
+@pytest.mark.parametrize('module', [module for module in MODULES if not module.endswith('__init__')])
+def test_nothing_downstream_is_imported_upstream(module):
+    later = sorted(name for name in imported_modules(module) if layer(name) > layer(module))
+    assert not later, f'{module} (layer {layer(module)}) imports the later {later}'

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from ddarm.physics.arm import Arm, ModelError
+from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import Plant, PlantOptions
 
 G = 9.81
@@ -84,7 +85,7 @@ def test_elbow_is_above_the_ground_plane_when_the_shoulder_is_raised(arm):
 
 
 def test_free_motion_conserves_energy(arm):
-    plant = Plant(arm, PlantOptions(period=0.01, substeps=20), np.array([0.2, 0.6, -0.4]),
+    plant = Plant(chain_from_model(arm.model), PlantOptions(period=0.01, substeps=20), np.array([0.2, 0.6, -0.4]),
                   np.array([1.0, -0.5, 2.0]))
     initial = arm.energy(plant.q, plant.v)
     for _ in range(200):

@@ -19,7 +19,8 @@ from ddarm_control.node import ControllerNode
 from ddarm.physics.arm import Arm, ModelError
 from ddarm_sim.node import RUNNING, PlantNode
 from ddarm.ros.interface import DIAGNOSTICS_QOS, SAMPLE_QOS, joint_state_msg, sample_index
-from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec
 from graph_helpers import InProcessGraph, overrides
 from test_graph_equivalence import assert_same_episode
 
@@ -66,7 +67,7 @@ def test_one_plant_node_ends_episodes_every_way_and_the_last_is_still_exact(ros_
         spin_until(graph.executor, lambda: listener.ends() == ['complete'])
 
         diverging = EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3)
-        assert graph.driver.run_episode(graph.executor, diverging).diverged_at is not None
+        assert graph.driver.run_episode(graph.executor, diverging).summary()['diverged_at_sample'] is not None
         spin_until(graph.executor, lambda: listener.ends()[-1:] == ['diverged'])
 
         # With the controller no longer spun, sample 0 goes unanswered.

@@ -14,7 +14,8 @@ from sensor_msgs.msg import JointState
 
 from ddarm.ros.interface import SAMPLE_QOS, joint_state_msg
 from ddarm.ros import driver as ros_episode
-from ddarm.episodes.spec import EpisodeSpec, check_episode, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec, check_episode
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from process_helpers import start_node, stop, wait_for
 
@@ -63,14 +64,14 @@ def sequence(ros_context, tmp_path, monkeypatch):
 def complete(sequence):
     result = sequence.episode(GOOD)
     expected = run_episode(GOOD)
-    assert not result.diverged
+    assert not result.diverged[0]
     for key in ('I1', 'I2', 'I'):
-        assert result.indices[key] == pytest.approx(expected.indices[key], rel=1e-9)
+        assert result.indices()[key] == pytest.approx(expected.indices()[key], rel=1e-9)
 
 
 def diverged(sequence):
     result = sequence.episode(DIVERGING)
-    assert result.diverged and result.diverged_at == run_episode(DIVERGING).diverged_at
+    assert result.diverged[0] and result.diverged_at[0] == run_episode(DIVERGING).diverged_at[0]
 
 
 def timeout(sequence):

@@ -6,8 +6,8 @@ import pytest
 import rclpy
 from rclpy.node import Node
 
-from ddarm.ros.parameter_files import (ParameterFileError, check_parameter_files, configures, node_keys,
-                                       parameter_file_paths)
+from ddarm.ros.parameter_files import (ParameterFileError, check_parameter_files, configures, given_parameters,
+                                       node_keys, parameter_file_paths)
 
 # (key, fully qualified name, whether rcl applies the key's parameters to that node), as rclpy 7.1 on
 # Jazzy does: test_rcl_applies_a_key_exactly_where_it_configures checks every row against it.
@@ -109,3 +109,35 @@ def test_an_unreadable_file_is_refused_naming_it(tmp_path):
     binary.write_bytes(b'\xff\xfe\x00plant')
     with pytest.raises(ParameterFileError, match=re.escape(f'parameter file {binary} ')):
         check_parameter_files(['--ros-args', '--params-file', str(binary)], '/plant')
+
+
+GIVEN_FILES = {
+    'a.yaml': '/arm:\n  plant:\n    ros__parameters: {deep: {x: [1, 2], y: {z: a}}, period: 0.01}\n'
+              '  "*":\n    ros__parameters: {star: 1}\n"/**/plant":\n  ros__parameters: {anyplant: 1}\n'
+              'plant:\n  ros__parameters: {rootplant: 1}\n',
+    'b.yaml': '/**:\n  ros__parameters: {everywhere: true}\nother:\n  ros__parameters: {not_me: 1}\n',
+}
+
+
+@pytest.mark.parametrize('rules', [
+    ['--params-file', 'a.yaml', '--params-file', 'b.yaml'],
+    ['--params-file', 'a.yaml', '-r', '__ns:=/arm', '-p', 'kpp:=3', '--param', 'plant:only:=1', '--', 'not_ros',
+     '--ros-args', '-p', 'later:=[1, 2]', '-p', 'text:=a:b'],
+    ['-r', '__node:=other', '--params-file', 'b.yaml', '-p', 'qos_overrides./x.publisher.depth:=3', '-p', 'a.b:=1'],
+])
+@pytest.mark.parametrize('namespace', ['/', '/arm'])
+def test_the_parameters_given_a_node_are_those_rcl_gives_it(tmp_path, rules, namespace):
+    for name, text in GIVEN_FILES.items():
+        (tmp_path / name).write_text(text)
+    arguments = ['prog', '--ros-args', *(str(tmp_path / rule) if rule.endswith('.yaml') else rule for rule in rules)]
+    context = rclpy.Context()
+    rclpy.init(context=context, args=arguments)
+    try:
+        # A node that declares every override it is given shows what rcl gives it.
+        node = Node('plant', namespace=namespace, context=context, enable_rosout=False,
+                    automatically_declare_parameters_from_overrides=True)
+        given = set(node.get_parameters_by_prefix('')) - {'use_sim_time', 'start_type_description_service'}
+        assert sorted(given_parameters(arguments, node.get_fully_qualified_name())) == sorted(given)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

@@ -4,16 +4,18 @@ import numpy as np
 import pytest
 
 from ddarm.physics.arm import Arm
+from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import Plant, PlantError, PlantOptions
 
 
 @pytest.fixture(scope='module')
 def arm():
+    """Pinocchio's model of the arm: the expected values (gravity, energy) come from it."""
     return Arm.from_urdf()
 
 
 def make_plant(arm, **options):
-    return Plant(arm, PlantOptions(**options), np.array([0.0, 0.5, -0.5]), np.zeros(3))
+    return Plant(chain_from_model(arm.model), PlantOptions(**options), np.array([0.0, 0.5, -0.5]), np.zeros(3))
 
 
 @pytest.mark.parametrize('torque', [[np.nan, 0, 0], [0, np.inf, 0], [1.0, 2.0], [[1, 2, 3]]])
@@ -62,8 +64,9 @@ def test_holding_gravity_keeps_the_arm_still_and_external_torque_moves_it(arm):
 
 
 def test_viscous_friction_takes_energy_out(arm):
-    free = Plant(arm, PlantOptions(), np.array([0.0, 0.5, -0.5]), np.array([2.0, 0.0, 0.0]))
-    damped = Plant(arm, PlantOptions(viscous_friction=[5.0, 5.0, 5.0]), free.q, free.v)
+    chain = chain_from_model(arm.model)
+    free = Plant(chain, PlantOptions(), np.array([0.0, 0.5, -0.5]), np.array([2.0, 0.0, 0.0]))
+    damped = Plant(chain, PlantOptions(viscous_friction=[5.0, 5.0, 5.0]), free.q, free.v)
     for _ in range(50):
         free.advance(np.zeros(3))
         damped.advance(np.zeros(3))
@@ -80,3 +83,25 @@ def test_divergence_freezes_the_last_state_within_bounds(arm):
     frozen = plant.q.copy()
     assert not plant.advance(np.zeros(3))
     np.testing.assert_array_equal(plant.q, frozen)
+
+
+def test_a_period_is_the_reference_rk4_on_pinocchios_aba(arm):
+    # The compiled step against the plain RK4 of reference_episode.py, on a plant that differs from the
+    # model (mass scale), with friction and an external torque.
+    from reference_episode import rk4_period
+
+    scale = np.array([1.0, 1.2, 0.9])
+    options = dict(substeps=8, external_torque=[1.0, -2.0, 0.5], viscous_friction=[0.5, 1.0, 0.2],
+                   coulomb_friction=[0.3, 0.2, 0.1])
+    plant = Plant(chain_from_model(arm.model), PlantOptions(**options), np.array([0.1, 0.5, -0.5]),
+                  np.array([1.0, -0.5, 2.0]), mass_scale=scale)
+    heavy = Arm.from_urdf(mass_scale=scale)
+    q, v = plant.q, plant.v
+    for n in range(20):
+        torque = np.array([5.0, 150.0 + n, 40.0])
+        assert plant.advance(torque)
+        q, v = rk4_period(heavy, q, v, torque, 0.01, 8, np.array(options['external_torque']),
+                    np.array(options['viscous_friction']), np.array(options['coulomb_friction']))
+        np.testing.assert_allclose(plant.q, q, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(plant.v, v, rtol=1e-12, atol=1e-12)
+    assert plant.sample == 20

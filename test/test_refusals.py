@@ -109,7 +109,7 @@ def test_the_tuner_refuses_an_output_root_that_is_a_file(tmp_path):
 def test_a_bug_is_not_dressed_as_a_refusal(monkeypatch):
     """Only ddarm's named errors (DdarmError) and the system's refusals of paths become exit 2: a bug keeps
     its traceback."""
-    import ddarm.cli.main as cli
+    import ddarm.cli.episode as cli
 
     def broken(spec):
         raise ValueError('a bug')

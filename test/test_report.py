@@ -8,8 +8,10 @@ import pytest
 
 from ddarm.recording.bags import EpisodeBagWriter, score_bag
 from ddarm.episodes.spec import EpisodeSpec
-from ddarm.paper.report import ReportError, number, write_report
-from ddarm.ros.driver import episode_record
+from ddarm.paper.report import ReportError, write_report
+from ddarm.paper.schema import Results
+from ddarm.paper.tables import number
+from ddarm.ros.node_parameters import episode_record
 from graph_helpers import InProcessGraph
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')
@@ -18,6 +20,9 @@ GAINS = {'pd_gravity': ((28000.0, 27000.0, 3500.0), (1760.0, 1700.0, 220.0)),
          'computed_torque': ((900.0,) * 3, (60.0,) * 3)}
 TAUS = [round(0.01 * i, 2) for i in range(11)]
 PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+# The fields of an episode row beyond its indices and bag (results.json's schema).
+EPISODE = {'diverged': False, 'max_abs_torque': [10.0, 300.0, 50.0], 'torque_limit': [20.0, 400.0, 100.0],
+           'within_limits': True}
 
 
 @pytest.fixture(scope='module')
@@ -47,7 +52,7 @@ def bags(tmp_path_factory):
 
 
 def synthetic_results(scores: dict) -> dict:
-    """A schema-complete results dict whose tables all point at the two recorded bags."""
+    """A schema-complete results dict (results.json's) whose tables all point at the two recorded bags."""
     def bag(controller):
         return f'bags/{controller}'
 
@@ -55,8 +60,8 @@ def synthetic_results(scores: dict) -> dict:
               'period': 0.01, 'delay': DELAYS[controller], 'kp': list(GAINS[controller][0]),
               'kv': list(GAINS[controller][1]),
               'search': {'episodes': 600, 'wall_time_s': 0.5, 'episodes_per_s': 1200.0, 'in_process_index': 0.1,
-                         'start_index': 4.0, 'methods': ['nelder-mead', 'cma']}}
-             for controller in CONTROLLERS for index in ('2.5', '3.2')]
+                         'start_index': 4.0, 'methods': ['nelder-mead', 'cma'], 'best_method': 'cma'}}
+             for controller in CONTROLLERS for index in ('I1', 'I')]
 
     def tau_row(controller, tau, limited, index, first, paper):
         return {'controller': controller, 'tau': tau, 'limited': limited, 'gains': f'{controller}-{index}',
@@ -64,10 +69,10 @@ def synthetic_results(scores: dict) -> dict:
                 'torque_limit': [20.0, 400.0, 100.0] if tau < 0.05 else [20.0, 200.0, 100.0],
                 'within_limits': tau < 0.05, 'bag': bag(controller), 'paper': paper}
 
-    table2 = [tau_row(controller, tau, limited, '2.5', 0.1 + tau * (3 if limited else 0.6) + 0.00123,
+    table2 = [tau_row(controller, tau, limited, 'I1', 0.1 + tau * (3 if limited else 0.6) + 0.00123,
                       0.156 if tau == 0.1 and not limited else None)
               for controller in CONTROLLERS for limited in (False, True) for tau in TAUS]
-    table3 = [tau_row(controller, tau, False, '3.2', 0.3 + tau * 0.2 + 0.00456, 0.303 if tau == 0.1 else None)
+    table3 = [tau_row(controller, tau, False, 'I', 0.3 + tau * 0.2 + 0.00456, 0.303 if tau == 0.1 else None)
               for controller in CONTROLLERS for tau in TAUS]
     table2[-1]['diverged'] = True
     table3[0]['bag'] = 'bags/never-recorded'
@@ -78,22 +83,24 @@ def synthetic_results(scores: dict) -> dict:
             scored = scores[controller] if (trajectory, duration, period) == cases[0] else {
                 'I': 2.5, 'I1': 0.5, 'I2': 2.0}
             table4.append({'controller': controller, 'trajectory': trajectory, 'T': duration, 'period': period,
-                           'delay': DELAYS[controller], 'gains': f'{controller}-3.2', 'kp': list(GAINS[controller][0]),
+                           'delay': DELAYS[controller], 'gains': f'{controller}-I', 'kp': list(GAINS[controller][0]),
                            'kv': list(GAINS[controller][1]), 'I': scored['I'], 'I1': scored['I1'],
-                           'I2': scored['I2'], 'bag': bag(controller),
+                           'I2': scored['I2'], **EPISODE, 'bag': bag(controller),
                            'paper': {'I': 1.07, 'I1': 0.27, 'I2': 0.80} if controller == 'pd_gravity'
                            else {'I': 0.30, 'I1': 0.07, 'I2': 0.23}})
     section2 = {
         'omega_rules': [{'controller': controller, 'omega': 15.0, 'kp': [225.0] * 3, 'kv': [30.0] * 3, 'I1': 0.7,
-                         'I2': 1.2, 'I': 1.9, 'bag': bag(controller)} for controller in CONTROLLERS],
+                         'I2': 1.2, 'I': 1.9, **EPISODE, 'bag': bag(controller)} for controller in CONTROLLERS],
         'omega_procedure': [
             {'controller': 'computed_torque', 'case': 'external torque P^z = (0, 20, 5) N m', 'max_error_deg': 0.5,
              'omega_min': 12.3, 'omega': 20.5, 'kp': [420.25] * 3, 'kv': [41.0] * 3, 'I1': 0.4, 'I2': 0.9,
-             'I': 1.3, 'bag': bag('computed_torque')},
+             'I': 1.3, 'bag': bag('computed_torque'), **EPISODE},
             {'controller': 'pd_gravity', 'case': 'links 10 % heavier', 'max_error_deg': 0.01, 'omega_min': 80.0,
-             'omega': None, 'kp': None, 'kv': None, 'I1': None, 'I2': None, 'I': None, 'bag': None}],
+             'omega': None, 'kp': None, 'kv': None, 'I1': None, 'I2': None, 'I': None, 'bag': None,
+             **dict.fromkeys(EPISODE)}],
         'stability': [{'period': period, 'omega_max_stable': 0.6 / period, 'omega_15_stable': 0.6 / period > 15,
-                       'I1_at_omega_15': 0.5, 'bag': bag('computed_torque')} for period in (0.005, 0.01, 0.05)],
+                       'I1_at_omega_15': 0.5, 'diverged_at_omega_15': False, 'bag': bag('computed_torque')}
+                      for period in (0.005, 0.01, 0.05)],
     }
     claims = [{'claim': 'computed torque tracks better: Table 4 I1 1.5 to 4 times smaller', 'reproduced': True,
                'evidence': 'I1 ratios PD/CT: 3.9, 1.2, 1.2, 5.6'},
@@ -101,7 +108,8 @@ def synthetic_results(scores: dict) -> dict:
                'evidence': 'limited at τ = 0.1: PD 0.4, CT 0.5'}]
     return {'command': 'ddarm reproduce --out runs/paper --quick', 'quick': True,
             'started': '2026-11-23T12:30:00+0000', 'wall_time_s': 41.7,
-            'settings': {'paper_delays': DELAYS, 'search_budget': 600},
+            'settings': {'paper_delays': DELAYS, 'search_budget': 600, 'cma_popsize': 16, 'taus': TAUS,
+                         'start_omegas': [8.0, 12.0, 15.0, 20.0, 30.0]},
             'gains': gains, 'table2': table2, 'table3': table3, 'table4': table4, 'section2': section2,
             'claims': claims,
             'reconstruction': ['Joint 2 at the origin, on the z axis at z = 0.',
@@ -123,7 +131,7 @@ def scores(bags):
 def written(bags, scores, tmp_path_factory):
     out = output_folder(bags, tmp_path_factory.mktemp('report'))
     results = synthetic_results(scores)
-    return out, results, write_report(out, results)
+    return out, results, write_report(out, Results.from_json(results))
 
 
 def test_the_report_puts_our_figures_beside_the_papers_and_links_their_bags(written, scores):
@@ -144,7 +152,7 @@ def test_the_report_puts_our_figures_beside_the_papers_and_links_their_bags(writ
         assert f"[{number(scores[controller]['I'])}](bags/{controller}) | {paper} |" in text
     assert '(28000, 27000, 3500)' in text
     # The optimised gains, with their undisturbed episode's index from its bag beside the search's own.
-    assert '| `pd_gravity-2.5` |' in text and '| 4.00 → 0.100 | [0.101](bags/pd_gravity) |' in text
+    assert '| `pd_gravity-I1` |' in text and '| 4.00 → 0.100 | [0.101](bags/pd_gravity) |' in text
     assert f"| 4.00 → 0.100 | [{number(scores['computed_torque']['I'])}](bags/computed_torque) |" in text
     assert 'none: even ω_min breaks the torque conditions' in text
     assert '| 0.05 | 20 | 12.0 | **no** |' in text
@@ -185,7 +193,7 @@ def test_results_missing_a_key_or_naming_an_unknown_controller_are_refused_by_na
     results = synthetic_results(scores)
     remove(results)
     with pytest.raises(ValueError, match=named.replace('[', r'\[').replace(']', r'\]')):
-        write_report(out, results)
+        write_report(out, Results.from_json(results))
     assert not (out / 'REPORT.md').exists() and not (out / 'figures').exists()
 
 
@@ -194,12 +202,12 @@ def test_a_missing_tracking_case_is_refused(bags, scores, tmp_path):
     results['table4'] = [row for row in results['table4']
                         if (row['trajectory'], row['T'], row['period']) != (1, 1.0, 0.01)]
     with pytest.raises(ReportError, match='no row for pd_gravity, trajectory 1'):
-        write_report(output_folder(bags, tmp_path), results)
+        write_report(output_folder(bags, tmp_path), Results.from_json(results))
 
 
 def test_an_existing_report_is_not_overwritten(bags, scores, tmp_path):
     out = output_folder(bags, tmp_path)
     (out / 'figures').mkdir()
     with pytest.raises(ReportError, match='exists already, not overwriting'):
-        write_report(out, synthetic_results(scores))
+        write_report(out, Results.from_json(synthetic_results(scores)))
     assert not (out / 'REPORT.md').exists()

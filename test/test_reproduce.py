@@ -7,6 +7,7 @@ import pytest
 
 from ddarm.recording.bags import score_bag
 from ddarm.cli.main import main
+from ddarm.paper.schema import Results
 
 PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
 
@@ -43,7 +44,7 @@ def test_every_table_number_is_the_score_of_its_bag(reproduction):
 
 
 def test_results_have_the_documented_shape(reproduction):
-    _, results = reproduction
+    out, results = reproduction
     assert len(results['table4']) == 8
     for row in results['table4']:
         assert {'controller', 'trajectory', 'T', 'period', 'I', 'I1', 'I2', 'kp', 'kv', 'bag', 'paper'} <= set(row)
@@ -51,6 +52,10 @@ def test_results_have_the_documented_shape(reproduction):
         assert row['delay'] == (0 if row['controller'] == 'pd_gravity' else 1)
     assert {row['limited'] for row in results['table2']} == {False, True}
     assert results['quick'] is True and results['claims']
+    # The schema reads it back (no key missing or extra), and names the indices I1, I2, I.
+    assert Results.load(out / 'results.json').to_json() == results
+    assert {entry['index'] for entry in results['gains']} == {'I1', 'I'}
+    assert all(f"-{entry['index']}-" in entry['name'] for entry in results['gains'])
 
 
 def test_reproduce_never_overwrites(reproduction, capsys):

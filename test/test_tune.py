@@ -22,6 +22,7 @@ def test_tune_improves_on_its_start_and_the_bag_agrees(capsys, tmp_path, control
                  '--out', str(tmp_path / 'gains.yaml'), '--json']) == 0
     report = json.loads(capsys.readouterr().out)
     key = 'I1' if index == '2.5' else 'I'
+    assert report['index'] == key  # the paper's equation numbers are shorthands for the indices' names
     assert report['in_process'][key] < min(report['start_indices'])
     assert report['agree'] and report['max_rel_difference'] <= 1e-9
     assert score_bag(report['bag'])[key] == report['from_bag'][key]

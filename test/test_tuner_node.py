@@ -12,7 +12,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from ddarm.recording.bags import BagError, bag_status, score_bag
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec
 from ddarm_tuner.node import TunerNode
 from ddarm.recording.runs import RunFolder
 from process_helpers import stop
@@ -24,11 +25,12 @@ GAINS = {'computed_torque': ([900.0] * 3, [60.0] * 3, 1),
 def start_nodes(law, folder):
     """The plant and one controller as processes, as `ros2 run` would start them."""
     kp, kv, _ = GAINS[law]
-    plant = subprocess.Popen([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '-p', 'autostart:=false'],
-                             stdout=open(folder / 'plant.log', 'w'), stderr=subprocess.STDOUT)
-    controller = subprocess.Popen([sys.executable, '-m', 'ddarm_control.node', law, '--ros-args',
-                                   '-p', f'kp:={kp}', '-p', f'kv:={kv}'],
-                                  stdout=open(folder / 'controller.log', 'w'), stderr=subprocess.STDOUT)
+    with open(folder / 'plant.log', 'w') as plant_log, open(folder / 'controller.log', 'w') as controller_log:
+        plant = subprocess.Popen([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '-p', 'autostart:=false'],
+                                 stdout=plant_log, stderr=subprocess.STDOUT)
+        controller = subprocess.Popen([sys.executable, '-m', 'ddarm_control.node', law, '--ros-args',
+                                       '-p', f'kp:={kp}', '-p', f'kv:={kv}'],
+                                      stdout=controller_log, stderr=subprocess.STDOUT)
     return [plant, controller]
 
 
@@ -54,7 +56,7 @@ def test_tuner_episodes_scored_from_their_bags_equal_the_in_process_indices(ros_
     assert summary['status'] == 'complete' and len(summary['episodes']) == 4
     for episode in summary['episodes']:
         spec = EpisodeSpec(**episode['spec'])
-        expected = run_episode(spec).indices
+        expected = run_episode(spec).indices()
         scored = score_bag(episode['bag'])
         for key in ('I1', 'I2', 'I'):
             assert scored[key] == pytest.approx(expected[key], rel=1e-9)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ddarm.control.laws import GainError
+from ddarm.control.laws import GainError, checked_gains
 
 # The ω of the ω-rule gains the searches start from: around the paper's ω = 15, on both sides.
 SEARCH_START_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
@@ -29,6 +29,23 @@ def omega_rule_gains(law: str, model, omega: float, final_position=None) -> tupl
     if final_position is None:
         raise GainError('the PD + gravity ω rule needs the final position q_f')
     return omega_rule_pd_gravity(np.diag(model.mass_matrix(final_position)), omega)
+
+
+def gains_from_parameters(law: str, omega: float, kp, kv, model, final_position=None):
+    """A controller's K_p, K_v: the ω rule of `law` when omega > 0, else the given kp, kv.
+
+    None when the PD + gravity rule still needs q_f (`final_position` unknown). GainError
+    names what is missing or wrong.
+    """
+    if not (np.isfinite(omega) and omega >= 0):
+        raise GainError(f'omega must be finite and not negative, got {omega!r}')
+    if omega == 0:
+        if kp is None or kv is None:
+            raise GainError('set kp and kv (one per joint), or omega > 0')
+        return checked_gains(kp, kv, model.dof)
+    if law == 'pd_gravity' and final_position is None:
+        return None
+    return omega_rule_gains(law, model, omega, final_position)
 
 
 def omega_rule_computed_torque(dof: int, omega) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,8 @@
-"""PD + gravity (2.1) and computed torque (2.6)/(2.11), sampled with a compute delay of d samples (MODEL.md 5).
+"""The two sampled control laws of section 2 and their compute delay (MODEL.md 5).
 
-The law functions broadcast over leading axes (the joint is the last axis), so a
-batch of gain vectors evaluates in one call.
+The compiled functions are the one definition of each law and of the delay: the batch engine
+runs them for many episodes at once (episodes on the last axis, "lanes"), the controller nodes
+for one through `SampledController`.
 """
 
 from __future__ import annotations
@@ -9,12 +10,16 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
+from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
+from ddarm.physics.dynamics import COMPILED, Chain, inverse_dynamics, joint_transforms, workspace
 
 CONTROLLERS = ('pd_gravity', 'computed_torque')
+PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each of CONTROLLERS
 MAX_DELAY = 100
 
 
@@ -24,18 +29,7 @@ class GainError(DdarmError, ValueError):
 
 def checked_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
     """K_p, K_v diagonals as arrays: `dof` finite positive numbers each, or GainError."""
-    checked = []
-    for name, gains in (('kp', kp), ('kv', kv)):
-        try:
-            array = np.array(gains, dtype=float)
-        except (TypeError, ValueError) as error:
-            raise GainError(f'{name} must be numbers, got {gains!r}') from error
-        if array.shape != (dof,):
-            raise GainError(f'{name} needs {dof} values (one per joint), got {gains!r}')
-        if not np.all(np.isfinite(array)) or np.any(array <= 0):
-            raise GainError(f'{name} must be finite and positive, got {gains!r}')
-        checked.append(array)
-    return checked[0], checked[1]
+    return (per_joint('kp', kp, dof, GainError, positive=True), per_joint('kv', kv, dof, GainError, positive=True))
 
 
 def checked_delay(delay) -> int:
@@ -44,21 +38,68 @@ def checked_delay(delay) -> int:
     return int(delay)
 
 
-def pd_gravity(kp: np.ndarray, kv: np.ndarray, error: np.ndarray, error_rate: np.ndarray,
-               gravity_at_reference: np.ndarray) -> np.ndarray:
-    """(2.1): P = K_p e + K_v ė + Ĝ(q^d)."""
-    return kp * error + kv * error_rate + gravity_at_reference
+def checked_friction(name: str, values, dof: int) -> np.ndarray | None:
+    """The model's friction F̂ for computed torque: None, or `dof` finite numbers >= 0."""
+    return None if values is None else per_joint(name, values, dof, GainError, non_negative=True)
 
 
-def computed_torque(mass_matrix: np.ndarray, bias: np.ndarray, kp: np.ndarray, kv: np.ndarray,
-                    error: np.ndarray, error_rate: np.ndarray,
-                    reference_acceleration: np.ndarray) -> np.ndarray:
-    """(2.6): P = M̂(q)(q̈^d + K_p e + K_v ė) + V̂(q, q̇) + Ĝ(q) + F̂(q, q̇); `bias` = V̂ + Ĝ + F̂.
+def gravity_feedforward(model: Arm, q_ref: np.ndarray) -> np.ndarray:
+    """Ĝ(q^d(t_j)) of PD + gravity at every sample (shape (samples, n)): computed off-line, before the
+    episode, from the controller's model by Pinocchio, as the paper computes its gravity term off-line."""
+    return np.array([model.gravity(q) for q in q_ref])
 
-    The paper's (2.11) swaps K_p and K_v by a misprint; (2.6) is meant (MODEL.md 5).
+
+@numba.njit(**COMPILED, inline='always')
+def measured_sample(n, delay):
+    """The sample whose state the torque for sample n is computed from: n - d, or 0 while n < d."""
+    return n - delay if n >= delay else 0
+
+
+@numba.njit(**COMPILED, inline='always')
+def pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, lanes):
+    """(2.1): P = K_p e + K_v ė + Ĝ(q^d(t_n)), e and ė at the measured sample."""
+    for i in range(qm.shape[0]):
+        for b in range(lanes):
+            command[i, b] = (kp[i, b] * (q_ref_measured[i] - qm[i, b])
+                             + kv[i, b] * (v_ref_measured[i] - vm[i, b]) + gravity_ref[i])
+
+
+@numba.njit(**COMPILED)
+def computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm, viscous_friction,
+                    coulomb_friction, work, commanded_acceleration, command, lanes):
+    """(2.6): P = M̂(q)(q̈^d + K_p e + K_v ė) + V̂(q, q̇) + Ĝ(q) + F̂(q̇) at the measured state.
+
+    The model's inverse dynamics at the measured state with the commanded acceleration; the
+    paper's (2.11) swaps K_p and K_v by a misprint, (2.6) is meant (MODEL.md 5).
     """
-    command = reference_acceleration + kp * error + kv * error_rate
-    return np.einsum('...ij,...j->...i', mass_matrix, command) + bias
+    parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia = chain
+    rotation, translation, spin, velocity, spin_rate, acceleration, force, moment = work[:8]
+    n = qm.shape[0]
+    for i in range(n):
+        for b in range(lanes):
+            commanded_acceleration[i, b] = (a_ref[i] + kp[i, b] * (q_ref_measured[i] - qm[i, b])
+                                            + kv[i, b] * (v_ref_measured[i] - vm[i, b]))
+    joint_transforms(kind, axis, placement_rotation, placement_translation, qm, rotation, translation, lanes)
+    inverse_dynamics(parent, kind, axis, armature, gravity, mass, lever, inertia, model_scale, rotation, translation,
+                     vm, commanded_acceleration, spin, velocity, spin_rate, acceleration, force, moment, command,
+                     lanes)
+    for i in range(n):
+        for b in range(lanes):
+            command[i, b] += viscous_friction[i] * vm[i, b] + coulomb_friction[i] * np.sign(vm[i, b])
+
+
+@numba.njit(**COMPILED)
+def _command_one(controller, chain, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
+                 viscous_friction, coulomb_friction):
+    """One episode's command, its workspace made here: the controller node's step."""
+    n = qm.shape[0]
+    command = np.empty((n, 1))
+    if controller == PD_GRAVITY:
+        pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, 1)
+    else:
+        computed_torque(chain, np.ones((n, 1)), kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm,
+                        viscous_friction, coulomb_friction, workspace(n, 1), np.empty((n, 1)), command, 1)
+    return command[:, 0]
 
 
 @dataclass(frozen=True)
@@ -91,14 +132,20 @@ class ReferencePoint:
 
 
 class DelayBuffer:
-    """Hands back the measurement of sample n - d, or that of sample 0 while n < d (MODEL.md 5)."""
+    """Hands back the measurement the torque for sample n is computed from: that of `measured_sample`
+    (n - d, or sample 0 while n < d) when the states come one sample after another from sample 0.
+
+    A controller sees arrivals, not the plant: it holds the last d + 1 and hands back the oldest,
+    so after a lost state, or a reset in the middle of an episode, it uses the state d arrivals ago
+    (or the first one since the reset).
+    """
 
     def __init__(self, delay: int) -> None:
         self.delay = checked_delay(delay)
         self._history: deque = deque(maxlen=self.delay + 1)
 
     def push(self, measurement):
-        """Store sample n's measurement; return the one the torque for sample n uses."""
+        """Store this sample's measurement; return the one its torque uses."""
         self._history.append(measurement)
         return self._history[0]
 
@@ -109,50 +156,55 @@ class DelayBuffer:
         return len(self._history)
 
 
-class PDGravityLaw:
+def _column(values) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(values, dtype=float)[:, None])
+
+
+class _Law:
+    """A law on the controller's model (`chain`), with gains that are replaced only by valid ones."""
+
+    code = PD_GRAVITY
+    name = ''
+
+    def __init__(self, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None) -> None:
+        self.chain = chain
+        self._arrays = chain.arrays()
+        self.kp, self.kv = checked_gains(kp, kv, chain.dof)
+        zero = np.zeros(chain.dof)
+        self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
+        self.coulomb_friction = checked_friction('coulomb_friction', coulomb_friction, chain.dof)
+        self._friction = (zero if self.viscous_friction is None else self.viscous_friction,
+                          zero if self.coulomb_friction is None else self.coulomb_friction)
+
+    def set_gains(self, kp, kv) -> None:
+        self.kp, self.kv = checked_gains(kp, kv, self.chain.dof)
+
+    def torque(self, measured: Measurement, reference: ReferencePoint, gravity_ref: np.ndarray | None = None):
+        """The command from the measured sample and the reference at t_n.
+
+        PD + gravity needs `gravity_ref`, Ĝ(q^d(t_n)) from `gravity_feedforward`; computed torque ignores it.
+        """
+        if self.code == PD_GRAVITY and gravity_ref is None:
+            raise GainError('PD + gravity needs the gravity feedforward Ĝ(q^d(t_n)) (gravity_feedforward)')
+        return _command_one(self.code, self._arrays, _column(self.kp), _column(self.kv),
+                            np.asarray(measured.q_ref, dtype=float), np.asarray(measured.v_ref, dtype=float),
+                            np.asarray(reference.a, dtype=float),
+                            np.zeros(self.chain.dof) if gravity_ref is None else np.asarray(gravity_ref, dtype=float),
+                            _column(measured.q), _column(measured.v), *self._friction)
+
+
+class PDGravityLaw(_Law):
     """Fig. 1: PD on the errors plus the model's gravity at the programmed position."""
 
+    code = PD_GRAVITY
     name = 'pd_gravity'
 
-    def __init__(self, model: Arm, kp, kv) -> None:
-        self.model = model
-        self.kp, self.kv = checked_gains(kp, kv, model.dof)
 
-    def set_gains(self, kp, kv) -> None:
-        self.kp, self.kv = checked_gains(kp, kv, self.model.dof)
-
-    def torque(self, measured: Measurement, reference: ReferencePoint) -> np.ndarray:
-        return pd_gravity(self.kp, self.kv, measured.error, measured.error_rate,
-                          self.model.gravity(reference.q))
-
-
-class ComputedTorqueLaw:
+class ComputedTorqueLaw(_Law):
     """Fig. 2: the model's inverse dynamics at the measured state, with friction F̂ if the model has it."""
 
+    code = COMPUTED_TORQUE
     name = 'computed_torque'
-
-    def __init__(self, model: Arm, kp, kv, viscous_friction=None, coulomb_friction=None) -> None:
-        self.model = model
-        self.kp, self.kv = checked_gains(kp, kv, model.dof)
-        self.viscous_friction = viscous_friction
-        self.coulomb_friction = coulomb_friction
-
-    def set_gains(self, kp, kv) -> None:
-        self.kp, self.kv = checked_gains(kp, kv, self.model.dof)
-
-    def friction(self, v: np.ndarray) -> np.ndarray:
-        """F̂(q̇): viscous plus Coulomb, as the plant's model of friction."""
-        torque = np.zeros_like(v)
-        if self.viscous_friction is not None:
-            torque = torque + self.viscous_friction * v
-        if self.coulomb_friction is not None:
-            torque = torque + self.coulomb_friction * np.sign(v)
-        return torque
-
-    def torque(self, measured: Measurement, reference: ReferencePoint) -> np.ndarray:
-        bias = self.model.bias(measured.q, measured.v) + self.friction(measured.v)
-        return computed_torque(self.model.mass_matrix(measured.q), bias, self.kp, self.kv,
-                               measured.error, measured.error_rate, reference.a)
 
 
 class SampledController:
@@ -170,18 +222,29 @@ class SampledController:
         """A new delay takes effect on a fresh history (as at an episode's start)."""
         self.buffer = DelayBuffer(delay)
 
-    def step(self, measurement: Measurement, reference: ReferencePoint) -> np.ndarray:
-        return self.law.torque(self.buffer.push(measurement), reference)
+    def step(self, measurement: Measurement, reference: ReferencePoint,
+             gravity_ref: np.ndarray | None = None) -> np.ndarray:
+        """The torque for this sample from the delayed measurement and the reference at t_n."""
+        return self.law.torque(self.buffer.push(measurement), reference, gravity_ref)
 
     def reset(self) -> None:
         """A new episode: forget the measurements of the last one."""
         self.buffer.clear()
 
 
-def make_law(controller: str, model: Arm, kp, kv, viscous_friction=None, coulomb_friction=None):
+def make_law(controller: str, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None):
     """The law named `controller` (one of CONTROLLERS) on the controller's model."""
     if controller == 'pd_gravity':
-        return PDGravityLaw(model, kp, kv)
+        return PDGravityLaw(chain, kp, kv)
     if controller == 'computed_torque':
-        return ComputedTorqueLaw(model, kp, kv, viscous_friction, coulomb_friction)
+        return ComputedTorqueLaw(chain, kp, kv, viscous_friction, coulomb_friction)
     raise GainError(f'controller must be one of {CONTROLLERS}, got {controller!r}')
+
+
+def warm_up(chain: Chain) -> None:
+    """Load both compiled laws (from numba's cache, or compile them) now, not at an episode's first sample."""
+    dof = chain.dof
+    point = Measurement(np.zeros(dof), np.zeros(dof), np.zeros(dof), np.zeros(dof))
+    for law in (PDGravityLaw, ComputedTorqueLaw):
+        law(chain, np.ones(dof), np.ones(dof)).torque(point, ReferencePoint(np.zeros(dof), np.zeros(dof), np.zeros(dof)),
+                                                      np.zeros(dof))

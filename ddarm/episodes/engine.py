@@ -1,471 +1,65 @@
-"""The batch episode engine: B episodes of one programmed motion that differ in gains (τ, limits, masses) in one call.
+"""The episode engine: B closed-loop episodes of one template in one call; one episode is a batch of one.
 
-Why compiled loops and not Pinocchio's abaInParallel over a ModelPool: on this project's
-2-core machine abaInParallel takes 0.48 ms for one RK4 stage of 1,000 column-stacked states,
-and an episode of the reference case has 3,200 stages (100 samples x 8 substeps x 4), so the
-accelerations alone cap it near 650 episodes/s before any NumPy work between the stages;
-the same dynamics as numba loops over the Pinocchio model's joint placements, axes and
-inertias, with the whole episode (law, delay, hold, saturation, divergence, scoring)
-compiled and the members shared out over the cores, run it at about 1,700 episodes/s
-(820 on one core; bench/batch_throughput.py measures both).
+The loop (MODEL.md 5) is assembled here from the one definition of each piece: the delay and
+the laws (ddarm.control.laws), the actuators' saturation and the sampled plant step
+(ddarm.physics.plant), and the indices (ddarm.episodes.indices). The whole episode is compiled,
+and the members are shared out over the cores; why compiled loops, see ddarm.physics.dynamics.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from functools import lru_cache
 
 import numba
 import numpy as np
-import pinocchio as pin
 
+from ddarm.arrays import per_episode
+from ddarm.control.laws import (CONTROLLERS, PD_GRAVITY, GainError, checked_gains, computed_torque, gravity_feedforward,
+                                measured_sample, pd_gravity)
+from ddarm.control.laws import warm_up as laws_warm_up
+from ddarm.episodes.indices import accumulate, error_weights, score_series, torque_weights
+from ddarm.episodes.result import Episodes
+from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, check_episode, plan_episode
 from ddarm.errors import DdarmError
-from ddarm.physics.arm import ModelError
-from ddarm.physics.plant import PlantOptions
 from ddarm.motion.programmed import paper_trajectory
-from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, load_arm, plan_episode
-from ddarm.episodes.indices import error_weights, torque_weights
+from ddarm.physics.arm import load_arm
+from ddarm.physics.dynamics import COMPILED, load_chain, workspace
+from ddarm.physics.plant import PlantError, PlantOptions, advance, checked_mass_scale, saturate, step_workspace
+from ddarm.physics.plant import warm_up as plant_warm_up
 
 # Far beyond any batch an optimiser asks for; refused before anything is allocated.
 MAX_BATCH = 100_000
 # The optional time series are four float arrays of B x (k_max + 1) x n values each.
 MAX_SERIES_VALUES = 25_000_000
-# Members one thread advances together (see the kernels' comment); measured best near 32 here.
+# Members one thread advances together (see ddarm.physics.dynamics); measured best near 32 here.
 LANES = 32
 MAX_THREADS = 256
-
-_REVOLUTE, _PRISMATIC = 0, 1
-_PD_GRAVITY, _COMPUTED_TORQUE = 0, 1
-_JOINT_KINDS = {
-    'JointModelRX': (_REVOLUTE, (1.0, 0.0, 0.0)),
-    'JointModelRY': (_REVOLUTE, (0.0, 1.0, 0.0)),
-    'JointModelRZ': (_REVOLUTE, (0.0, 0.0, 1.0)),
-    'JointModelRevoluteUnaligned': (_REVOLUTE, None),
-    'JointModelPX': (_PRISMATIC, (1.0, 0.0, 0.0)),
-    'JointModelPY': (_PRISMATIC, (0.0, 1.0, 0.0)),
-    'JointModelPZ': (_PRISMATIC, (0.0, 0.0, 1.0)),
-    'JointModelPrismaticUnaligned': (_PRISMATIC, None),
-}
 
 
 class BatchError(DdarmError, ValueError):
     """Batch inputs the engine refuses."""
 
 
-@dataclass(frozen=True)
-class Chain:
-    """A Pinocchio model as plain arrays: per joint its parent, kind, axis, placement and link inertia.
-
-    Joint i (0-based) is Pinocchio's joint i + 1; parent -1 is the fixed base. Placements are
-    Pinocchio's jointPlacements (child-to-parent rotation and translation at q = 0), inertias
-    are expressed in the joint's frame: mass, centre of mass (lever) and inertia about it.
-    """
-
-    parent: np.ndarray
-    kind: np.ndarray
-    axis: np.ndarray
-    rotation: np.ndarray
-    translation: np.ndarray
-    mass: np.ndarray
-    lever: np.ndarray
-    inertia: np.ndarray
-    armature: np.ndarray
-    gravity: np.ndarray
-
-    @property
-    def dof(self) -> int:
-        return len(self.parent)
-
-    def arrays(self) -> tuple:
-        """The fields in the order the compiled functions unpack them."""
-        return (self.parent, self.kind, self.axis, self.rotation, self.translation, self.armature, self.gravity,
-                self.mass, self.lever, self.inertia)
-
-
-def chain_from_model(model: pin.Model) -> Chain:
-    """The arrays the compiled dynamics read, from a model of 1-DOF revolute or prismatic joints."""
-    parent, kind, axis, rotation, translation = [], [], [], [], []
-    for joint_id in range(1, model.njoints):
-        joint = model.joints[joint_id]
-        name = joint.shortname()
-        if name not in _JOINT_KINDS or joint.nq != 1 or joint.nv != 1 or joint.idx_v != joint_id - 1:
-            raise ModelError(f'joint {model.names[joint_id]!r} is a {name}: the batch engine supports '
-                             f'1-DOF revolute and prismatic joints only')
-        joint_kind, joint_axis = _JOINT_KINDS[name]
-        parent.append(model.parents[joint_id] - 1)
-        kind.append(joint_kind)
-        axis.append(joint.extract().axis if joint_axis is None else joint_axis)
-        rotation.append(model.jointPlacements[joint_id].rotation)
-        translation.append(model.jointPlacements[joint_id].translation)
-    inertias = [model.inertias[joint_id] for joint_id in range(1, model.njoints)]
-    return Chain(
-        parent=np.array(parent, dtype=np.int64), kind=np.array(kind, dtype=np.int64),
-        axis=np.array(axis, dtype=float), rotation=np.array(rotation, dtype=float),
-        translation=np.array(translation, dtype=float),
-        mass=np.array([inertia.mass for inertia in inertias]),
-        lever=np.array([inertia.lever for inertia in inertias]),
-        inertia=np.array([inertia.inertia for inertia in inertias]),
-        armature=np.array(model.armature, dtype=float), gravity=np.array(model.gravity.linear, dtype=float))
-
-
-@lru_cache(maxsize=16)
-def load_chain(urdf: str | None) -> Chain:
-    """The chain of the URDF's (controller's) model, built once per process."""
-    return chain_from_model(load_arm(urdf).model)
-
-
-# The compiled kernels keep the members of a chunk on the last axis ("lanes") and loop over
-# them innermost: every call of a compiled function costs an atomic reference count per
-# array argument, which per member would cost as much as the dynamics themselves. The small
-# kernels are inlined into their callers (inline='always'), which saves those calls; the two
-# called from two places are not, which saves a third of the compile time.
-# Compiled once into __pycache__. error_model='numpy': a division by zero gives inf or NaN,
-# as in the scalar path, and the divergence check sees it; fastmath 'contract' only fuses
-# multiply-adds, and no flag that assumes finite numbers is set.
-_COMPILED = dict(cache=True, error_model='numpy', fastmath={'contract'})
-
-
-@numba.njit(**_COMPILED)
-def _joint_transforms(chain_kind, chain_axis, chain_rotation, chain_translation, q, rotation, translation,
-                      lanes):
-    """liMi = jointPlacement · X_J(q_i) for every joint: the child-to-parent rotation and translation."""
-    for i in range(q.shape[0]):
-        ax, ay, az = chain_axis[i, 0], chain_axis[i, 1], chain_axis[i, 2]
-        p00, p01, p02 = chain_rotation[i, 0, 0], chain_rotation[i, 0, 1], chain_rotation[i, 0, 2]
-        p10, p11, p12 = chain_rotation[i, 1, 0], chain_rotation[i, 1, 1], chain_rotation[i, 1, 2]
-        p20, p21, p22 = chain_rotation[i, 2, 0], chain_rotation[i, 2, 1], chain_rotation[i, 2, 2]
-        t0, t1, t2 = chain_translation[i, 0], chain_translation[i, 1], chain_translation[i, 2]
-        if chain_kind[i] == _REVOLUTE:
-            for b in range(lanes):
-                # Rodrigues: c 1 + s [axis]x + (1 - c) axis axisᵀ.
-                c, s = np.cos(q[i, b]), np.sin(q[i, b])
-                k = 1.0 - c
-                j00, j01, j02 = c + k * ax * ax, k * ax * ay - s * az, k * ax * az + s * ay
-                j10, j11, j12 = k * ax * ay + s * az, c + k * ay * ay, k * ay * az - s * ax
-                j20, j21, j22 = k * ax * az - s * ay, k * ay * az + s * ax, c + k * az * az
-                rotation[i, 0, 0, b] = p00 * j00 + p01 * j10 + p02 * j20
-                rotation[i, 0, 1, b] = p00 * j01 + p01 * j11 + p02 * j21
-                rotation[i, 0, 2, b] = p00 * j02 + p01 * j12 + p02 * j22
-                rotation[i, 1, 0, b] = p10 * j00 + p11 * j10 + p12 * j20
-                rotation[i, 1, 1, b] = p10 * j01 + p11 * j11 + p12 * j21
-                rotation[i, 1, 2, b] = p10 * j02 + p11 * j12 + p12 * j22
-                rotation[i, 2, 0, b] = p20 * j00 + p21 * j10 + p22 * j20
-                rotation[i, 2, 1, b] = p20 * j01 + p21 * j11 + p22 * j21
-                rotation[i, 2, 2, b] = p20 * j02 + p21 * j12 + p22 * j22
-                translation[i, 0, b], translation[i, 1, b], translation[i, 2, b] = t0, t1, t2
-        else:
-            for b in range(lanes):
-                for r in range(3):
-                    for col in range(3):
-                        rotation[i, r, col, b] = chain_rotation[i, r, col]
-                shift = q[i, b]
-                translation[i, 0, b] = t0 + (p00 * ax + p01 * ay + p02 * az) * shift
-                translation[i, 1, b] = t1 + (p10 * ax + p11 * ay + p12 * az) * shift
-                translation[i, 2, b] = t2 + (p20 * ax + p21 * ay + p22 * az) * shift
-
-
-@numba.njit(**_COMPILED)
-def _inverse_dynamics(chain_parent, chain_kind, chain_axis, armature, gravity, chain_mass, lever, chain_inertia,
-                      mass_scale, rotation, translation, v, a, spin, velocity, spin_rate, acceleration, force,
-                      moment, tau, lanes):
-    """τ = M(q) a + V(q, q̇) + G(q) of (1.1): recursive Newton-Euler in each joint's frame, as Pinocchio's rnea.
-
-    Motions are (linear, angular) at the joint frame's origin; a parent's motion m enters the
-    child's frame as Rᵀ(m_lin - t × m_ang), Rᵀ m_ang; the base accelerates at -g. Link i's
-    mass and inertia are the chain's times mass_scale[i] (MODEL.md's plant/model mismatch).
-    """
-    n = v.shape[0]
-    for i in range(n):
-        p = chain_parent[i]
-        revolute = chain_kind[i] == _REVOLUTE
-        ax, ay, az = chain_axis[i, 0], chain_axis[i, 1], chain_axis[i, 2]
-        c0, c1, c2 = lever[i, 0], lever[i, 1], lever[i, 2]
-        i00, i01, i02 = chain_inertia[i, 0, 0], chain_inertia[i, 0, 1], chain_inertia[i, 0, 2]
-        i10, i11, i12 = chain_inertia[i, 1, 0], chain_inertia[i, 1, 1], chain_inertia[i, 1, 2]
-        i20, i21, i22 = chain_inertia[i, 2, 0], chain_inertia[i, 2, 1], chain_inertia[i, 2, 2]
-        for b in range(lanes):
-            if p < 0:
-                pw0, pw1, pw2, pl0, pl1, pl2 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                pdw0, pdw1, pdw2 = 0.0, 0.0, 0.0
-                pdl0, pdl1, pdl2 = -gravity[0], -gravity[1], -gravity[2]
-            else:
-                pw0, pw1, pw2 = spin[p, 0, b], spin[p, 1, b], spin[p, 2, b]
-                pl0, pl1, pl2 = velocity[p, 0, b], velocity[p, 1, b], velocity[p, 2, b]
-                pdw0, pdw1, pdw2 = spin_rate[p, 0, b], spin_rate[p, 1, b], spin_rate[p, 2, b]
-                pdl0, pdl1, pdl2 = acceleration[p, 0, b], acceleration[p, 1, b], acceleration[p, 2, b]
-            t0, t1, t2 = translation[i, 0, b], translation[i, 1, b], translation[i, 2, b]
-            r00, r01, r02 = rotation[i, 0, 0, b], rotation[i, 0, 1, b], rotation[i, 0, 2, b]
-            r10, r11, r12 = rotation[i, 1, 0, b], rotation[i, 1, 1, b], rotation[i, 1, 2, b]
-            r20, r21, r22 = rotation[i, 2, 0, b], rotation[i, 2, 1, b], rotation[i, 2, 2, b]
-            ul0, ul1, ul2 = pl0 - (t1 * pw2 - t2 * pw1), pl1 - (t2 * pw0 - t0 * pw2), pl2 - (t0 * pw1 - t1 * pw0)
-            ua0 = pdl0 - (t1 * pdw2 - t2 * pdw1)
-            ua1 = pdl1 - (t2 * pdw0 - t0 * pdw2)
-            ua2 = pdl2 - (t0 * pdw1 - t1 * pdw0)
-            w0 = r00 * pw0 + r10 * pw1 + r20 * pw2
-            w1 = r01 * pw0 + r11 * pw1 + r21 * pw2
-            w2 = r02 * pw0 + r12 * pw1 + r22 * pw2
-            l0 = r00 * ul0 + r10 * ul1 + r20 * ul2
-            l1 = r01 * ul0 + r11 * ul1 + r21 * ul2
-            l2 = r02 * ul0 + r12 * ul1 + r22 * ul2
-            dw0 = r00 * pdw0 + r10 * pdw1 + r20 * pdw2
-            dw1 = r01 * pdw0 + r11 * pdw1 + r21 * pdw2
-            dw2 = r02 * pdw0 + r12 * pdw1 + r22 * pdw2
-            dl0 = r00 * ua0 + r10 * ua1 + r20 * ua2
-            dl1 = r01 * ua0 + r11 * ua1 + r21 * ua2
-            dl2 = r02 * ua0 + r12 * ua1 + r22 * ua2
-            rate, accel = v[i, b], a[i, b]
-            # a_i = X a_parent + S q̈ + v_i × v_J, with v_J = S q̇.
-            if revolute:
-                jw0, jw1, jw2 = ax * rate, ay * rate, az * rate
-                w0, w1, w2 = w0 + jw0, w1 + jw1, w2 + jw2
-                dw0 += ax * accel + (w1 * jw2 - w2 * jw1)
-                dw1 += ay * accel + (w2 * jw0 - w0 * jw2)
-                dw2 += az * accel + (w0 * jw1 - w1 * jw0)
-                dl0 += l1 * jw2 - l2 * jw1
-                dl1 += l2 * jw0 - l0 * jw2
-                dl2 += l0 * jw1 - l1 * jw0
-            else:
-                jl0, jl1, jl2 = ax * rate, ay * rate, az * rate
-                l0, l1, l2 = l0 + jl0, l1 + jl1, l2 + jl2
-                dl0 += ax * accel + (w1 * jl2 - w2 * jl1)
-                dl1 += ay * accel + (w2 * jl0 - w0 * jl2)
-                dl2 += az * accel + (w0 * jl1 - w1 * jl0)
-            spin[i, 0, b], spin[i, 1, b], spin[i, 2, b] = w0, w1, w2
-            velocity[i, 0, b], velocity[i, 1, b], velocity[i, 2, b] = l0, l1, l2
-            spin_rate[i, 0, b], spin_rate[i, 1, b], spin_rate[i, 2, b] = dw0, dw1, dw2
-            acceleration[i, 0, b], acceleration[i, 1, b], acceleration[i, 2, b] = dl0, dl1, dl2
-            # f = I a + v ×* (I v), with I m = (m (m_lin - c × m_ang), I_c m_ang + c × that).
-            scale = mass_scale[i, b]
-            m = chain_mass[i] * scale
-            hv0 = m * (l0 - (c1 * w2 - c2 * w1))
-            hv1 = m * (l1 - (c2 * w0 - c0 * w2))
-            hv2 = m * (l2 - (c0 * w1 - c1 * w0))
-            nv0 = (i00 * scale) * w0 + (i01 * scale) * w1 + (i02 * scale) * w2 + (c1 * hv2 - c2 * hv1)
-            nv1 = (i10 * scale) * w0 + (i11 * scale) * w1 + (i12 * scale) * w2 + (c2 * hv0 - c0 * hv2)
-            nv2 = (i20 * scale) * w0 + (i21 * scale) * w1 + (i22 * scale) * w2 + (c0 * hv1 - c1 * hv0)
-            ha0 = m * (dl0 - (c1 * dw2 - c2 * dw1))
-            ha1 = m * (dl1 - (c2 * dw0 - c0 * dw2))
-            ha2 = m * (dl2 - (c0 * dw1 - c1 * dw0))
-            na0 = (i00 * scale) * dw0 + (i01 * scale) * dw1 + (i02 * scale) * dw2 + (c1 * ha2 - c2 * ha1)
-            na1 = (i10 * scale) * dw0 + (i11 * scale) * dw1 + (i12 * scale) * dw2 + (c2 * ha0 - c0 * ha2)
-            na2 = (i20 * scale) * dw0 + (i21 * scale) * dw1 + (i22 * scale) * dw2 + (c0 * ha1 - c1 * ha0)
-            force[i, 0, b] = ha0 + (w1 * hv2 - w2 * hv1)
-            force[i, 1, b] = ha1 + (w2 * hv0 - w0 * hv2)
-            force[i, 2, b] = ha2 + (w0 * hv1 - w1 * hv0)
-            moment[i, 0, b] = na0 + (w1 * nv2 - w2 * nv1) + (l1 * hv2 - l2 * hv1)
-            moment[i, 1, b] = na1 + (w2 * nv0 - w0 * nv2) + (l2 * hv0 - l0 * hv2)
-            moment[i, 2, b] = na2 + (w0 * nv1 - w1 * nv0) + (l0 * hv1 - l1 * hv0)
-    for i in range(n - 1, -1, -1):
-        p = chain_parent[i]
-        revolute = chain_kind[i] == _REVOLUTE
-        ax, ay, az = chain_axis[i, 0], chain_axis[i, 1], chain_axis[i, 2]
-        for b in range(lanes):
-            f0, f1, f2 = force[i, 0, b], force[i, 1, b], force[i, 2, b]
-            n0, n1, n2 = moment[i, 0, b], moment[i, 1, b], moment[i, 2, b]
-            if revolute:
-                tau[i, b] = ax * n0 + ay * n1 + az * n2 + armature[i] * a[i, b]
-            else:
-                tau[i, b] = ax * f0 + ay * f1 + az * f2 + armature[i] * a[i, b]
-            if p >= 0:
-                g0, g1, g2, e0, e1, e2 = _to_parent(rotation, translation, i, b, f0, f1, f2, n0, n1, n2)
-                force[p, 0, b] += g0
-                force[p, 1, b] += g1
-                force[p, 2, b] += g2
-                moment[p, 0, b] += e0
-                moment[p, 1, b] += e1
-                moment[p, 2, b] += e2
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _to_parent(rotation, translation, i, b, f0, f1, f2, n0, n1, n2):
-    """A force (linear f, moment n) at joint i's frame, expressed at its parent's: R f, R n + t × R f."""
-    g0 = rotation[i, 0, 0, b] * f0 + rotation[i, 0, 1, b] * f1 + rotation[i, 0, 2, b] * f2
-    g1 = rotation[i, 1, 0, b] * f0 + rotation[i, 1, 1, b] * f1 + rotation[i, 1, 2, b] * f2
-    g2 = rotation[i, 2, 0, b] * f0 + rotation[i, 2, 1, b] * f1 + rotation[i, 2, 2, b] * f2
-    t0, t1, t2 = translation[i, 0, b], translation[i, 1, b], translation[i, 2, b]
-    e0 = rotation[i, 0, 0, b] * n0 + rotation[i, 0, 1, b] * n1 + rotation[i, 0, 2, b] * n2 + (t1 * g2 - t2 * g1)
-    e1 = rotation[i, 1, 0, b] * n0 + rotation[i, 1, 1, b] * n1 + rotation[i, 1, 2, b] * n2 + (t2 * g0 - t0 * g2)
-    e2 = rotation[i, 2, 0, b] * n0 + rotation[i, 2, 1, b] * n1 + rotation[i, 2, 2, b] * n2 + (t0 * g1 - t1 * g0)
-    return g0, g1, g2, e0, e1, e2
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _mass_matrix(chain_parent, chain_kind, chain_axis, armature, chain_mass, lever, chain_inertia, mass_scale,
-                 rotation, translation, composite_mass, first_moment, origin_inertia, mass_matrix, lanes):
-    """M(q) of (1.1), both triangles: the composite-rigid-body algorithm, as Pinocchio's crba.
-
-    A composite body is kept as its mass m, first moment h = m c and inertia I about the joint
-    frame's origin; it moves to the parent frame as h' = R h + m t and
-    I' = R I Rᵀ + (2 t·Rh + m |t|²) 1 - t (Rh)ᵀ - (Rh) tᵀ - m t tᵀ (I stays symmetric).
-    """
-    n = chain_mass.shape[0]
-    for i in range(n):
-        c0, c1, c2 = lever[i, 0], lever[i, 1], lever[i, 2]
-        cc = c0 * c0 + c1 * c1 + c2 * c2
-        for b in range(lanes):
-            scale = mass_scale[i, b]
-            m = chain_mass[i] * scale
-            composite_mass[i, b] = m
-            first_moment[i, 0, b], first_moment[i, 1, b], first_moment[i, 2, b] = m * c0, m * c1, m * c2
-            for r in range(3):
-                for col in range(3):
-                    origin_inertia[i, r, col, b] = chain_inertia[i, r, col] * scale - m * lever[i, r] * lever[i, col]
-                origin_inertia[i, r, r, b] += m * cc
-    for i in range(n - 1, -1, -1):
-        p = chain_parent[i]
-        revolute = chain_kind[i] == _REVOLUTE
-        ax, ay, az = chain_axis[i, 0], chain_axis[i, 1], chain_axis[i, 2]
-        for b in range(lanes):
-            m = composite_mass[i, b]
-            h0, h1, h2 = first_moment[i, 0, b], first_moment[i, 1, b], first_moment[i, 2, b]
-            # F = I_composite S_i: momentum (linear m v + ω × h, angular h × v + I ω) of the joint's unit motion.
-            if revolute:
-                f0, f1, f2 = ay * h2 - az * h1, az * h0 - ax * h2, ax * h1 - ay * h0
-                n0 = origin_inertia[i, 0, 0, b] * ax + origin_inertia[i, 0, 1, b] * ay + origin_inertia[i, 0, 2, b] * az
-                n1 = origin_inertia[i, 1, 0, b] * ax + origin_inertia[i, 1, 1, b] * ay + origin_inertia[i, 1, 2, b] * az
-                n2 = origin_inertia[i, 2, 0, b] * ax + origin_inertia[i, 2, 1, b] * ay + origin_inertia[i, 2, 2, b] * az
-                mass_matrix[i, i, b] = ax * n0 + ay * n1 + az * n2 + armature[i]
-            else:
-                f0, f1, f2 = m * ax, m * ay, m * az
-                n0, n1, n2 = h1 * az - h2 * ay, h2 * ax - h0 * az, h0 * ay - h1 * ax
-                mass_matrix[i, i, b] = ax * f0 + ay * f1 + az * f2 + armature[i]
-            j = i
-            while chain_parent[j] >= 0:
-                f0, f1, f2, n0, n1, n2 = _to_parent(rotation, translation, j, b, f0, f1, f2, n0, n1, n2)
-                j = chain_parent[j]
-                if chain_kind[j] == _REVOLUTE:
-                    entry = chain_axis[j, 0] * n0 + chain_axis[j, 1] * n1 + chain_axis[j, 2] * n2
-                else:
-                    entry = chain_axis[j, 0] * f0 + chain_axis[j, 1] * f1 + chain_axis[j, 2] * f2
-                mass_matrix[j, i, b] = entry
-                mass_matrix[i, j, b] = entry
-            if p >= 0:
-                t0, t1, t2 = translation[i, 0, b], translation[i, 1, b], translation[i, 2, b]
-                r00, r01, r02 = rotation[i, 0, 0, b], rotation[i, 0, 1, b], rotation[i, 0, 2, b]
-                r10, r11, r12 = rotation[i, 1, 0, b], rotation[i, 1, 1, b], rotation[i, 1, 2, b]
-                r20, r21, r22 = rotation[i, 2, 0, b], rotation[i, 2, 1, b], rotation[i, 2, 2, b]
-                g0 = r00 * h0 + r01 * h1 + r02 * h2
-                g1 = r10 * h0 + r11 * h1 + r12 * h2
-                g2 = r20 * h0 + r21 * h1 + r22 * h2
-                composite_mass[p, b] += m
-                first_moment[p, 0, b] += g0 + m * t0
-                first_moment[p, 1, b] += g1 + m * t1
-                first_moment[p, 2, b] += g2 + m * t2
-                # A = I Rᵀ, then R A, for the symmetric I of the child.
-                i00, i01, i02 = origin_inertia[i, 0, 0, b], origin_inertia[i, 0, 1, b], origin_inertia[i, 0, 2, b]
-                i11, i12, i22 = origin_inertia[i, 1, 1, b], origin_inertia[i, 1, 2, b], origin_inertia[i, 2, 2, b]
-                a00, a01, a02 = i00 * r00 + i01 * r01 + i02 * r02, i00 * r10 + i01 * r11 + i02 * r12, \
-                    i00 * r20 + i01 * r21 + i02 * r22
-                a10, a11, a12 = i01 * r00 + i11 * r01 + i12 * r02, i01 * r10 + i11 * r11 + i12 * r12, \
-                    i01 * r20 + i11 * r21 + i12 * r22
-                a20, a21, a22 = i02 * r00 + i12 * r01 + i22 * r02, i02 * r10 + i12 * r11 + i22 * r12, \
-                    i02 * r20 + i12 * r21 + i22 * r22
-                shift = 2.0 * (t0 * g0 + t1 * g1 + t2 * g2) + m * (t0 * t0 + t1 * t1 + t2 * t2)
-                e00 = r00 * a00 + r01 * a10 + r02 * a20 - (2.0 * t0 * g0 + m * t0 * t0) + shift
-                e11 = r10 * a01 + r11 * a11 + r12 * a21 - (2.0 * t1 * g1 + m * t1 * t1) + shift
-                e22 = r20 * a02 + r21 * a12 + r22 * a22 - (2.0 * t2 * g2 + m * t2 * t2) + shift
-                e01 = r00 * a01 + r01 * a11 + r02 * a21 - (t0 * g1 + g0 * t1 + m * t0 * t1)
-                e02 = r00 * a02 + r01 * a12 + r02 * a22 - (t0 * g2 + g0 * t2 + m * t0 * t2)
-                e12 = r10 * a02 + r11 * a12 + r12 * a22 - (t1 * g2 + g1 * t2 + m * t1 * t2)
-                origin_inertia[p, 0, 0, b] += e00
-                origin_inertia[p, 1, 1, b] += e11
-                origin_inertia[p, 2, 2, b] += e22
-                origin_inertia[p, 0, 1, b] += e01
-                origin_inertia[p, 1, 0, b] += e01
-                origin_inertia[p, 0, 2, b] += e02
-                origin_inertia[p, 2, 0, b] += e02
-                origin_inertia[p, 1, 2, b] += e12
-                origin_inertia[p, 2, 1, b] += e12
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _solve_spd(matrix, rhs, factor, out, lanes):
-    """out = matrix⁻¹ rhs for symmetric positive definite matrices (Cholesky, matrix = L Lᵀ)."""
-    n = rhs.shape[0]
-    for j in range(n):
-        for b in range(lanes):
-            diagonal = matrix[j, j, b]
-            for k in range(j):
-                diagonal -= factor[j, k, b] * factor[j, k, b]
-            factor[j, j, b] = np.sqrt(diagonal)
-        for i in range(j + 1, n):
-            for b in range(lanes):
-                entry = matrix[i, j, b]
-                for k in range(j):
-                    entry -= factor[i, k, b] * factor[j, k, b]
-                factor[i, j, b] = entry / factor[j, j, b]
-    for i in range(n):
-        for b in range(lanes):
-            entry = rhs[i, b]
-            for k in range(i):
-                entry -= factor[i, k, b] * out[k, b]
-            out[i, b] = entry / factor[i, i, b]
-    for i in range(n - 1, -1, -1):
-        for b in range(lanes):
-            entry = out[i, b]
-            for k in range(i + 1, n):
-                entry -= factor[k, i, b] * out[k, b]
-            out[i, b] = entry / factor[i, i, b]
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _workspace(n, lanes):
-    """Scratch arrays for a chunk's dynamics, the Data of Pinocchio's Model/Data pair: one column per member."""
-    return (np.zeros((n, 3, 3, lanes)), np.zeros((n, 3, lanes)), np.zeros((n, 3, lanes)), np.zeros((n, 3, lanes)),
-            np.zeros((n, 3, lanes)), np.zeros((n, 3, lanes)), np.zeros((n, 3, lanes)), np.zeros((n, 3, lanes)),
-            np.zeros((n, lanes)), np.zeros((n, 3, lanes)), np.zeros((n, 3, 3, lanes)), np.zeros((n, lanes)),
-            np.zeros((n, lanes)), np.zeros((n, n, lanes)), np.zeros((n, n, lanes)))
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _forward_dynamics(chain, mass_scale, q, v, torque, work, out, lanes):
-    """q̈ solving M(q) q̈ + V(q, q̇) + G(q) = torque (1.1): M by CRBA, V + G by RNEA at q̈ = 0, Cholesky."""
-    parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia = chain
-    (rotation, translation, spin, velocity, spin_rate, acceleration, force, moment, composite_mass,
-     first_moment, origin_inertia, zero, bias, mass_matrix, factor) = work
-    _joint_transforms(kind, axis, placement_rotation, placement_translation, q, rotation, translation, lanes)
-    _inverse_dynamics(parent, kind, axis, armature, gravity, mass, lever, inertia, mass_scale, rotation,
-                      translation, v, zero, spin, velocity, spin_rate, acceleration, force, moment, bias, lanes)
-    _mass_matrix(parent, kind, axis, armature, mass, lever, inertia, mass_scale, rotation, translation,
-                 composite_mass, first_moment, origin_inertia, mass_matrix, lanes)
-    for i in range(q.shape[0]):
-        for b in range(lanes):
-            bias[i, b] = torque[i, b] - bias[i, b]
-    _solve_spd(mass_matrix, bias, factor, out, lanes)
-
-
-@numba.njit(**_COMPILED, inline='always')
-def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v, load, lanes):
-    """P + P^z - F(q̇): the actuators' torque plus the plant's other joint torques (MODEL.md 3)."""
-    for i in range(v.shape[0]):
-        for b in range(lanes):
-            load[i, b] = applied[i, b] + (external_torque[i] - viscous_friction[i] * v[i, b]
-                                          - coulomb_friction[i] * np.sign(v[i, b]))
-
-
-@numba.njit(**_COMPILED)
+@numba.njit(**COMPILED)
 def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, plant, record, series, outcome):
-    """Members start … start + lanes - 1 through run_episode's loop (MODEL.md 5), all samples in step.
+    """Members start … start + lanes - 1 through the loop of MODEL.md 5, all samples in step.
 
-    Each member has its own gains, q̇(0), torque limit and plant mass scale; a member stops
-    where run_episode would (a non-finite command at sample n: scored up to n - 1; a state out
-    of bounds after the period from sample n: scored up to n) while the others go on.
+    Each member has its own gains, q̇(0), torque limit and plant mass scale; a member stops at a
+    non-finite command for sample n (scored up to n - 1) or a state out of bounds after the
+    period from sample n (scored up to n), while the others go on.
     """
     plant_scale, member_kp, member_kv, member_v0, member_limit = members
-    q_ref, v_ref, a_ref, gravity_ref, nominal, error_weight, torque_weight = episode
-    external_torque, viscous_friction, coulomb_friction, period, substeps, max_position, max_velocity = plant
+    q_ref, v_ref, a_ref, gravity_ref, nominal, error_weight, torque_weight, viscous_model, coulomb_model = episode
     out_q, out_v, out_command, out_torque = series
     error_sum, torque_sum, diverged_at, scored = outcome
     # Every compiled call counts references to its array arguments: arrays shared with the
     # other threads would have their counts' cache lines bounce between the cores.
-    parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia = (
-        chain[0].copy(), chain[1].copy(), chain[2].copy(), chain[3].copy(), chain[4].copy(), chain[5].copy(),
-        chain[6].copy(), chain[7].copy(), chain[8].copy(), chain[9].copy())
-    chain = (parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia)
-    external_torque, viscous_friction, coulomb_friction = (
-        external_torque.copy(), viscous_friction.copy(), coulomb_friction.copy())
+    chain = (chain[0].copy(), chain[1].copy(), chain[2].copy(), chain[3].copy(), chain[4].copy(), chain[5].copy(),
+             chain[6].copy(), chain[7].copy(), chain[8].copy(), chain[9].copy())
+    plant = (plant[0].copy(), plant[1].copy(), plant[2].copy(), plant[3], plant[4], plant[5], plant[6])
     n, samples = q0.shape[0], q_ref.shape[0]
     k_max = samples - 1
     scale, kp, kv, limit = np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes))
@@ -476,43 +70,27 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
             kp[i, b], kv[i, b] = member_kp[start + b, i], member_kv[start + b, i]
             q[i, b], v[i, b] = q0[i], member_v0[start + b, i]
     model_scale = np.ones((n, lanes))
-    work = _workspace(n, lanes)
-    rotation, translation, spin, velocity, spin_rate, acceleration, force, moment = work[:8]
+    law_work = workspace(n, lanes)
+    scratch = step_workspace(n, lanes)
     ring_q, ring_v = np.empty((delay + 1, n, lanes)), np.empty((delay + 1, n, lanes))
-    reference_command, command = np.empty((n, lanes)), np.empty((n, lanes))
-    applied, load = np.zeros((n, lanes)), np.empty((n, lanes))
-    # RK4: the stage positions in turn, the stage velocities and accelerations all kept for the final sum.
-    qn, vn, qs = np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes))
-    stage_v, stage_a = np.empty((4, n, lanes)), np.empty((4, n, lanes))
+    commanded_acceleration, command = np.empty((n, lanes)), np.empty((n, lanes))
+    applied = np.zeros((n, lanes))
+    within = np.ones(lanes, dtype=np.bool_)
     first, second = np.zeros(lanes), np.zeros(lanes)
     running = np.ones(lanes, dtype=np.bool_)
     remaining = lanes
     for b in range(lanes):
         scored[start + b], diverged_at[start + b] = samples, -1
-    h = period / substeps
     for k in range(samples):
         ring_q[k % (delay + 1)], ring_v[k % (delay + 1)] = q, v
-        measured = k - delay if k >= delay else 0
+        measured = measured_sample(k, delay)
         qm, vm = ring_q[measured % (delay + 1)], ring_v[measured % (delay + 1)]
-        if controller == _PD_GRAVITY:
-            for i in range(n):
-                for b in range(lanes):
-                    command[i, b] = (kp[i, b] * (q_ref[measured, i] - qm[i, b])
-                                     + kv[i, b] * (v_ref[measured, i] - vm[i, b]) + gravity_ref[k, i])
+        if controller == PD_GRAVITY:
+            pd_gravity(kp, kv, q_ref[measured], v_ref[measured], gravity_ref[k], qm, vm, command, lanes)
         else:
-            for i in range(n):
-                for b in range(lanes):
-                    reference_command[i, b] = (a_ref[k, i] + kp[i, b] * (q_ref[measured, i] - qm[i, b])
-                                               + kv[i, b] * (v_ref[measured, i] - vm[i, b]))
-            # (2.6) is the model's inverse dynamics at the measured state with the commanded q̈, plus F̂.
-            _joint_transforms(kind, axis, placement_rotation, placement_translation, qm, rotation, translation,
-                              lanes)
-            _inverse_dynamics(parent, kind, axis, armature, gravity, mass, lever, inertia, model_scale, rotation,
-                              translation, vm, reference_command, spin, velocity, spin_rate, acceleration, force,
-                              moment, command, lanes)
-            for i in range(n):
-                for b in range(lanes):
-                    command[i, b] += viscous_friction[i] * vm[i, b] + coulomb_friction[i] * np.sign(vm[i, b])
+            computed_torque(chain, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], qm, vm,
+                            viscous_model, coulomb_model, law_work, commanded_acceleration, command, lanes)
+        saturate(command, limit, applied, lanes)
         for b in range(lanes):
             if not running[b]:
                 continue
@@ -524,47 +102,16 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
                 running[b] = False
                 remaining -= 1
                 continue
-            for i in range(n):
-                applied[i, b] = min(max(command[i, b], -limit[i, b]), limit[i, b])
-                first[b] += abs(q_ref[k, i] - q[i, b]) * error_weight[i]
-                second[b] += abs(applied[i, b] - nominal[k, i]) * torque_weight[i]
+            accumulate(q_ref[k], q, applied, nominal[k], error_weight, torque_weight, first, second, b)
             if record:
                 for i in range(n):
                     out_q[start + b, k, i], out_v[start + b, k, i] = q[i, b], v[i, b]
                     out_command[start + b, k, i], out_torque[start + b, k, i] = command[i, b], applied[i, b]
         if remaining == 0 or k == k_max:
             break
-        # Plant.advance for every member at once, RK4 as plant.py writes it; a stopped member's result is dropped.
-        qn[:], vn[:] = q, v
-        for _ in range(substeps):
-            qs[:], stage_v[0] = qn, vn
-            for stage in range(4):
-                vs = stage_v[stage]
-                _plant_load(applied, external_torque, viscous_friction, coulomb_friction, vs, load, lanes)
-                _forward_dynamics(chain, scale, qs, vs, load, work, stage_a[stage], lanes)
-                if stage < 3:
-                    step = h if stage == 2 else 0.5 * h
-                    for i in range(n):
-                        for b in range(lanes):
-                            qs[i, b] = qn[i, b] + step * vs[i, b]
-                            stage_v[stage + 1, i, b] = vn[i, b] + step * stage_a[stage, i, b]
-            for i in range(n):
-                for b in range(lanes):
-                    qn[i, b] = qn[i, b] + h / 6.0 * (stage_v[0, i, b] + 2.0 * stage_v[1, i, b]
-                                                     + 2.0 * stage_v[2, i, b] + stage_v[3, i, b])
-                    vn[i, b] = vn[i, b] + h / 6.0 * (stage_a[0, i, b] + 2.0 * stage_a[1, i, b]
-                                                     + 2.0 * stage_a[2, i, b] + stage_a[3, i, b])
+        advance(chain, scale, plant, applied, q, v, within, scratch, lanes)
         for b in range(lanes):
-            if not running[b]:
-                continue
-            within = True
-            for i in range(n):
-                within = (within and np.isfinite(qn[i, b]) and np.isfinite(vn[i, b])
-                          and abs(qn[i, b]) <= max_position and abs(vn[i, b]) <= max_velocity)
-            if within:
-                for i in range(n):
-                    q[i, b], v[i, b] = qn[i, b], vn[i, b]
-            else:
+            if running[b] and not within[b]:
                 diverged_at[start + b], scored[start + b] = k + 1, k + 1
                 running[b] = False
                 remaining -= 1
@@ -572,7 +119,7 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
         error_sum[start + b], torque_sum[start + b] = first[b], second[b]
 
 
-@numba.njit(**_COMPILED, nogil=True)
+@numba.njit(**COMPILED, nogil=True)
 def _run_chunks(first_chunk, chunk_stride, lanes, chain, controller, delay, q0, members, episode, plant, record,
                 series, outcome):
     """One thread's share of the batch: chunks first_chunk, first_chunk + chunk_stride, … of `lanes` members."""
@@ -583,76 +130,13 @@ def _run_chunks(first_chunk, chunk_stride, lanes, chain, controller, delay, q0, 
                    series, outcome)
 
 
-@dataclass(frozen=True)
-class BatchResult:
-    """Per-member indices of a batch, as run_episode scores them, and optionally the time series.
-
-    index_2_5 is I1 (2.5), torque_index I2 and index_3_2 I = I1 + I2 (3.2), all divided by
-    k_max; a member that diverged at sample j (diverged_at[b] = j, else -1) is scored on its
-    samples before j, like run_episode. The series have shape (B, k_max + 1, n) and hold NaN
-    from samples_scored[b] on.
-    """
-
-    plan: EpisodePlan
-    index_2_5: np.ndarray
-    torque_index: np.ndarray
-    index_3_2: np.ndarray
-    diverged_at: np.ndarray
-    samples_scored: np.ndarray
-    q: np.ndarray | None = None
-    v: np.ndarray | None = None
-    command: np.ndarray | None = None
-    torque: np.ndarray | None = None
-
-    @property
-    def size(self) -> int:
-        return len(self.index_3_2)
-
-    @property
-    def diverged(self) -> np.ndarray:
-        return self.diverged_at >= 0
-
-    def indices(self, member: int) -> dict:
-        """Member `member`'s indices under run_episode's keys: I1, I2, I."""
-        return {'I1': float(self.index_2_5[member]), 'I2': float(self.torque_index[member]),
-                'I': float(self.index_3_2[member])}
-
-
 def _batch_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
-    arrays = []
-    for name, gains in (('kp', kp), ('kv', kv)):
-        try:
-            array = np.array(gains, dtype=float)
-        except (TypeError, ValueError) as error:
-            raise BatchError(f'{name} must be numbers, got {gains!r}') from error
-        if array.ndim != 2 or array.shape[1] != dof:
-            raise BatchError(f'{name} must have shape (B, {dof}): one row of {dof} gains per episode, '
-                             f'got shape {array.shape}')
-        arrays.append(array)
-    kp, kv = arrays
+    kp, kv = per_episode('kp', kp, None, dof, BatchError), per_episode('kv', kv, None, dof, BatchError)
     if kp.shape != kv.shape:
         raise BatchError(f'kp and kv must have the same shape, got {kp.shape} and {kv.shape}')
-    size = kp.shape[0]
-    if not 1 <= size <= MAX_BATCH:
-        raise BatchError(f'the batch must hold 1 to {MAX_BATCH} episodes, got B = {size}')
-    for name, array in (('kp', kp), ('kv', kv)):
-        bad = ~np.all(np.isfinite(array) & (array > 0), axis=1)
-        if bad.any():
-            member = int(np.argmax(bad))
-            raise BatchError(f'{name} must be finite and positive: episode {member} has {array[member].tolist()}')
+    if not 1 <= kp.shape[0] <= MAX_BATCH:
+        raise BatchError(f'the batch must hold 1 to {MAX_BATCH} episodes, got B = {kp.shape[0]}')
     return kp, kv
-
-
-def _per_member(name: str, values, size: int, dof: int) -> np.ndarray:
-    """A (B, n) array of finite positive values: one row per episode."""
-    array = np.array(values, dtype=float)
-    if array.shape != (size, dof):
-        raise BatchError(f'{name} must have shape ({size}, {dof}): one row per episode, got shape {array.shape}')
-    bad = ~np.all(np.isfinite(array) & (array > 0), axis=1)
-    if bad.any():
-        member = int(np.argmax(bad))
-        raise BatchError(f'{name} must be finite and positive: episode {member} has {array[member].tolist()}')
-    return array
 
 
 def _initial_velocities(template: EpisodeSpec, plan: EpisodePlan, tau, size: int) -> np.ndarray:
@@ -672,26 +156,25 @@ def _initial_velocities(template: EpisodeSpec, plan: EpisodePlan, tau, size: int
 
 def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None, mass_scale=None,
                    series: bool = False, plan: EpisodePlan | None = None,
-                   threads: int | None = None) -> BatchResult:
+                   threads: int | None = None) -> Episodes:
     """B episodes of `template` in one call, member b with gains kp[b], kv[b] (shape (B, n) each).
 
-    Every member is the episode run_episode runs for `template` with kp, kv replaced by the
-    member's (MODEL.md 5-8: the zero-order hold, P_n from the state of sample n - d, saturation,
-    divergence, the indices (2.5) and (3.2)); only floating-point rounding differs. Optional
-    per-member variations, each one row per member, replace the template's: `tau` (B,) the
-    disturbance (3.1), `torque_limit` (B, n) the actuator limits, `mass_scale` (B, n) the plant's
-    link masses against the controller's model. `series` also returns q, q̇, the commanded and
-    the applied torque at every sample. `plan` (as from plan_episode or plan_motion) saves
-    re-planning when the caller runs many batches of one template; per-member τ needs the
-    template's own paper trajectory, so it cannot be combined with a given plan. `threads`
-    (default: the cores this process may use) run the members in parallel.
+    Every member is the episode `template` with kp, kv replaced by the member's (MODEL.md 5-8:
+    the zero-order hold, P_n from the state of sample n - d, saturation, divergence, the indices
+    (2.5) and (3.2)). Optional per-member variations, each one row per member, replace the
+    template's: `tau` (B,) the disturbance (3.1), `torque_limit` (B, n) the actuator limits,
+    `mass_scale` (B, n) the plant's link masses against the controller's model. `series` also
+    returns q, q̇, the commanded and the applied torque at every sample. `plan` (as from
+    plan_episode or plan_motion) saves re-planning when the caller runs many batches of one
+    template; per-member τ needs the template's own paper trajectory, so it cannot be combined
+    with a given plan. `threads` (default: the cores this process may use) run the members in
+    parallel.
 
     Raises BatchError (a ValueError) naming the problem, before anything is simulated.
     """
     if plan is not None and tau is not None:
         raise BatchError('per-episode tau re-derives q̇(0) from the paper trajectory: pass no plan with it')
     plan = plan if plan is not None else plan_episode(template)
-    model_arm = load_arm(template.urdf)
     chain = load_chain(template.urdf)
     dof = chain.dof
     if plan.q_ref.shape[1] != dof:
@@ -706,19 +189,21 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
                                coulomb_friction=template.coulomb_friction,
                                external_torque=template.external_torque).checked(dof)
         if template.mass_scale is not None:
-            # The same refusal run_episode gives for a bad plant mass scale.
-            load_arm(template.urdf, template.mass_scale)
-    except ValueError as error:
+            checked_mass_scale(template.mass_scale, dof)
+    except PlantError as error:
         raise BatchError(str(error)) from error
     v0 = np.array(_initial_velocities(template, plan, tau, size), dtype=float, order='C')
+    varied = {}
+    if tau is not None:
+        varied['tau'] = np.array(tau, dtype=float)
     if torque_limit is not None:
-        limit = _per_member('torque_limit', torque_limit, size, dof)
+        limit = varied['torque_limit'] = per_episode('torque_limit', torque_limit, size, dof, BatchError)
     elif options.torque_limit is not None:
         limit = np.tile(options.torque_limit, (size, 1))
     else:
         limit = np.full((size, dof), np.inf)
     if mass_scale is not None:
-        scale = _per_member('mass_scale', mass_scale, size, dof)
+        scale = varied['mass_scale'] = per_episode('mass_scale', mass_scale, size, dof, BatchError)
     else:
         scale = np.tile(template.mass_scale if template.mass_scale is not None else np.ones(dof), (size, 1))
     samples = len(plan.times)
@@ -728,27 +213,24 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
                          f'ask for fewer episodes or no series')
     series_shape = (size, samples, dof) if series else (0, samples, dof)
     out_q, out_v, out_command, out_torque = (np.full(series_shape, np.nan) for _ in range(4))
-    if template.controller == 'pd_gravity':
-        gravity_ref = np.array([model_arm.gravity(q) for q in plan.q_ref])
-        controller = _PD_GRAVITY
-    else:
-        gravity_ref = np.zeros_like(plan.q_ref)
-        controller = _COMPUTED_TORQUE
     zero = np.zeros(dof)
+    gravity_ref = (gravity_feedforward(load_arm(template.urdf), plan.q_ref) if template.controller == 'pd_gravity'
+                   else np.zeros_like(plan.q_ref))
+    # The controller's model of friction F̂ is the plant's (computed torque only; MODEL.md 5).
+    compiled = options.compiled(dof)
+    viscous_model, coulomb_model = (compiled[1], compiled[2]) if template.controller == 'computed_torque' else (
+        zero, zero)
     outcome = (np.zeros(size), np.zeros(size), np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64))
     members = (scale, kp, kv, v0, limit)
     episode = tuple(np.ascontiguousarray(array, dtype=float) for array in (
         plan.q_ref, plan.v_ref, plan.a_ref, gravity_ref, plan.nominal, error_weights(dof),
-        torque_weights(plan.nominal)))
-    plant = (zero if options.external_torque is None else options.external_torque,
-             zero if options.viscous_friction is None else options.viscous_friction,
-             zero if options.coulomb_friction is None else options.coulomb_friction,
-             float(options.period), int(options.substeps), float(options.max_position), float(options.max_velocity))
+        torque_weights(plan.nominal), viscous_model, coulomb_model))
     threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), size)
     # Chunks small enough that every thread gets one, large enough to amortise a compiled call.
     lanes = min(LANES, -(-size // threads))
+    controller = PD_GRAVITY if template.controller == 'pd_gravity' else 1 - PD_GRAVITY
     arguments = (lanes, chain.arrays(), controller, int(template.delay), np.array(plan.q0, dtype=float), members,
-                 episode, plant, series, (out_q, out_v, out_command, out_torque), outcome)
+                 episode, compiled, series, (out_q, out_v, out_command, out_torque), outcome)
     if threads == 1:
         _run_chunks(0, 1, *arguments)
     else:
@@ -757,6 +239,34 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
             list(pool.map(lambda first: _run_chunks(first, threads, *arguments), range(threads)))
     error_sum, torque_sum, diverged_at, scored = outcome
     first, second = error_sum / plan.k_max, torque_sum / plan.k_max
-    return BatchResult(plan=plan, index_2_5=first, torque_index=second, index_3_2=first + second,
-                       diverged_at=diverged_at, samples_scored=scored,
-                       **(dict(q=out_q, v=out_v, command=out_command, torque=out_torque) if series else {}))
+    return Episodes(template=template, plan=plan, kp=kp, kv=kv, I1=first, I2=second, I=first + second,
+                    diverged_at=diverged_at, samples_scored=scored, varied=varied,
+                    **(dict(q=out_q, v=out_v, command=out_command, torque=out_torque) if series else {}))
+
+
+def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
+    """One episode in-process (MODEL.md 5), with its series: a batch of one."""
+    plan = plan if plan is not None else check_episode(spec)
+    try:
+        kp, kv = checked_gains(spec.kp, spec.kv, load_chain(spec.urdf).dof)
+    except GainError as error:
+        raise EpisodeError(str(error)) from error
+    return simulate_batch(spec, [kp], [kv], series=True, plan=plan, threads=1)
+
+
+def warm_up() -> float:
+    """Compile every compiled piece of the loop, or load it from numba's cache, and return the seconds it took.
+
+    The compiled code is written to __pycache__ once; a process that starts node processes calls
+    this first, so that a fresh checkout's nodes load it instead of each compiling it at start-up.
+    """
+    started = time.perf_counter()
+    chain = load_chain(None)
+    plant_warm_up(chain)
+    laws_warm_up(chain)
+    spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * chain.dof, kv=(1.0,) * chain.dof)
+    for controller in CONTROLLERS:
+        episode = run_episode(dataclasses.replace(spec, controller=controller))
+        score_series(episode.plan.q_ref, episode.scored('q'), episode.scored('torque'), episode.plan.nominal,
+                     episode.plan.k_max)
+    return time.perf_counter() - started

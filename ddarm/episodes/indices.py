@@ -1,15 +1,20 @@
-"""The performance indices (2.5) and (3.2) with the weights of MODEL.md section 8.
+"""The performance indices I1 (2.5), I2 and I = I1 + I2 (3.2), with the weights of MODEL.md section 8.
 
-Arrays have the sample on the second-to-last axis and the joint on the last, so a
-leading batch axis is free.
+`accumulate` is their one definition, sample by sample: the batch engine sums it as it runs
+the episodes, `score_series` over recorded samples (the ROS driver's and the bag scorer's).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ddarm.errors import DdarmError
+from ddarm.physics.dynamics import COMPILED
 
+INDICES = ('I1', 'I2', 'I')
+# The paper numbers its indices by equation: (2.5) is I1, (3.2) is I.
+PAPER_EQUATIONS = {'2.5': 'I1', '3.2': 'I'}
 # S_i = 360/2π: errors in radians weigh as degrees.
 DEGREES_PER_RADIAN = 360.0 / (2.0 * np.pi)
 # R_i makes a torque deviation of 10 % of the joint's largest nominal torque weigh as 1°.
@@ -30,31 +35,41 @@ def torque_weights(nominal: np.ndarray) -> np.ndarray:
     largest = np.max(np.abs(nominal), axis=-2)
     if np.any(largest <= 0) or not np.all(np.isfinite(largest)):
         raise IndicesError(f'every joint needs a nonzero finite nominal torque to weigh its torque '
-                          f'deviation, got maxima {largest}')
+                           f'deviation, got maxima {largest}')
     return TORQUE_WEIGHT_PERCENT / largest
 
 
-def index_2_5(errors: np.ndarray, k_max: int) -> np.ndarray:
-    """(2.5): I_1 = (1/k_max) Σ_j Σ_i |e_i(jΔ)| S_i over the samples given (j = 0 … k_max)."""
+@numba.njit(**COMPILED, inline='always')
+def accumulate(q_ref, q, applied, nominal, error_weight, torque_weight, error_sum, torque_sum, b):
+    """Adds sample j's terms for episode b: Σ_i |e_i(jΔ)| S_i to (2.5)'s sum, Σ_i |P_i - P_i^nom| R_i to I2's.
+
+    q_ref and nominal are the sample's (n,) values, q and applied the (n, lanes) state and torque.
+    """
+    for i in range(q_ref.shape[0]):
+        error_sum[b] += abs(q_ref[i] - q[i, b]) * error_weight[i]
+        torque_sum[b] += abs(applied[i, b] - nominal[i]) * torque_weight[i]
+
+
+@numba.njit(**COMPILED)
+def _sums(q_ref, q, torque, nominal, error_weight, torque_weight):
+    error_sum, torque_sum = np.zeros(1), np.zeros(1)
+    n = q.shape[1]
+    for j in range(q.shape[0]):
+        accumulate(q_ref[j], q[j].reshape((n, 1)), torque[j].reshape((n, 1)), nominal[j], error_weight, torque_weight,
+                   error_sum, torque_sum, 0)
+    return error_sum[0], torque_sum[0]
+
+
+def score_series(q_ref: np.ndarray, q: np.ndarray, torque: np.ndarray, nominal: np.ndarray,
+                 k_max: int) -> dict[str, float]:
+    """I1, I2 and I of one episode from its scored samples j = 0 … (shape (samples, n)), divided by k_max.
+
+    R_i comes from the whole `nominal` series; q_ref and nominal may run past the scored samples.
+    """
     if k_max < 1:
         raise IndicesError(f'k_max must be at least 1, got {k_max}')
-    return np.sum(np.abs(errors) * error_weights(errors.shape[-1]), axis=(-2, -1)) / k_max
-
-
-def torque_index(torques: np.ndarray, nominal: np.ndarray, k_max: int,
-                 weights: np.ndarray | None = None) -> np.ndarray:
-    """(3.2)'s I_2 = (1/k_max) Σ_j Σ_i |P_i(jΔ) - P_i^nom(jΔ)| R_i, P the torque actually applied."""
-    if k_max < 1:
-        raise IndicesError(f'k_max must be at least 1, got {k_max}')
-    if weights is None:
-        weights = torque_weights(nominal)
-    samples = torques.shape[-2]
-    return np.sum(np.abs(torques - nominal[..., :samples, :]) * weights, axis=(-2, -1)) / k_max
-
-
-def index_3_2(errors: np.ndarray, torques: np.ndarray, nominal: np.ndarray,
-              k_max: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(3.2): I = I_1 + I_2; returns (I, I_1, I_2). R_i comes from the whole `nominal` series."""
-    first = index_2_5(errors, k_max)
-    second = torque_index(torques, nominal, k_max)
-    return first + second, first, second
+    samples = len(q)
+    error_sum, torque_sum = _sums(*(np.ascontiguousarray(x, dtype=float) for x in (
+        q_ref[:samples], q, torque, nominal[:samples], error_weights(q.shape[-1]), torque_weights(nominal))))
+    first, second = error_sum / k_max, torque_sum / k_max
+    return {'I1': first, 'I2': second, 'I': first + second}

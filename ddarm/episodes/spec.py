@@ -1,21 +1,18 @@
-"""One closed-loop episode run in-process: programmed motion, plant and sampled law wired together."""
+"""What defines an episode (EpisodeSpec) and what it needs before it starts (EpisodePlan)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-from functools import lru_cache
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ddarm.control.gains import omega_rule_gains
-from ddarm.control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
-                                checked_delay, checked_gains, make_law)
+from ddarm.control.laws import CONTROLLERS, GainError, checked_delay, checked_gains
 from ddarm.errors import DdarmError
-from ddarm.physics.arm import Arm, ModelError
-from ddarm.physics.plant import DEFAULT_SUBSTEPS, Plant, PlantError, PlantOptions, disturbed_initial_state
 from ddarm.motion.programmed import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
-                                  sample_count, sample_times)
-from ddarm.episodes.indices import index_3_2
+                                     sample_count, sample_times)
+from ddarm.physics.arm import ModelError, load_arm
+from ddarm.physics.plant import DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale, disturbed_initial_state
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000
@@ -23,12 +20,6 @@ MAX_SAMPLES = 1_000_000
 
 class EpisodeError(DdarmError, ValueError):
     """An episode specification that cannot be run."""
-
-
-@lru_cache(maxsize=16)
-def load_arm(urdf: str | None, mass_scale: tuple[float, ...] | None = None) -> Arm:
-    """The arm from a URDF, loaded once per process (Arm holds scratch space: one thread only)."""
-    return Arm.from_urdf(urdf, mass_scale)
 
 
 def _optional_tuple(values) -> tuple[float, ...] | None:
@@ -120,52 +111,6 @@ def plan_motion(spec: EpisodeSpec, motion: ProgrammedMotion, times: np.ndarray) 
     return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0)
 
 
-@dataclass
-class EpisodeResult:
-    """An episode's samples j = 0 … k_max and its indices; after a divergence, the samples before it."""
-
-    spec: EpisodeSpec
-    plan: EpisodePlan
-    q: np.ndarray
-    v: np.ndarray
-    command: np.ndarray  # what the law asked for
-    torque: np.ndarray  # what the actuators applied (after saturation)
-    diverged_at: int | None = None
-    indices: dict = field(default_factory=dict)
-    plant_report: dict | None = None  # over ROS: the plant node's end-of-episode diagnostics
-
-    @property
-    def errors(self) -> np.ndarray:
-        return self.plan.q_ref[:len(self.q)] - self.q
-
-    @property
-    def diverged(self) -> bool:
-        return self.diverged_at is not None
-
-    def summary(self) -> dict:
-        """The JSON-ready figures: indices, divergence, per-joint maxima, and the spec that made them."""
-        errors, torque = self.errors[:len(self.torque)], self.torque
-        return {
-            **self.indices,
-            'diverged': self.diverged,
-            'diverged_at_sample': self.diverged_at,
-            'samples_scored': len(torque),
-            'k_max': self.plan.k_max,
-            'max_abs_error_deg': np.degrees(np.max(np.abs(errors), axis=0)).tolist() if len(torque) else None,
-            'max_abs_torque': np.max(np.abs(torque), axis=0).tolist() if len(torque) else None,
-            'max_abs_nominal_torque': np.max(np.abs(self.plan.nominal), axis=0).tolist(),
-            'torque_limit': None if self.plan.torque_limit is None else self.plan.torque_limit.tolist(),
-            'spec': self.spec.to_dict(),
-            **({'plant_report': self.plant_report} if self.plant_report is not None else {}),
-        }
-
-
-def score(plan: EpisodePlan, errors: np.ndarray, torque: np.ndarray) -> dict:
-    """I (3.2), I1 (2.5) and I2 over the scored samples, divided by k_max as (2.5) says."""
-    total, first, second = index_3_2(errors, torque, plan.nominal, plan.k_max)
-    return {'I1': float(first), 'I2': float(second), 'I': float(total)}
-
-
 def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
                      final_position: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ω rule of section 2 for `controller`; PD + gravity takes m_ii of the model at q_f."""
@@ -187,45 +132,7 @@ def check_episode(spec: EpisodeSpec) -> EpisodePlan:
                      viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
                      external_torque=spec.external_torque).checked(dof)
         if spec.mass_scale is not None:
-            load_arm(spec.urdf, spec.mass_scale)
+            checked_mass_scale(spec.mass_scale, dof)
     except (GainError, PlantError, ModelError) as error:
         raise EpisodeError(str(error)) from error
     return plan
-
-
-def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> EpisodeResult:
-    """Run one episode in-process (MODEL.md 5): P_n from the state of sample n - d, held over [t_n, t_{n+1})."""
-    plan = plan if plan is not None else plan_episode(spec)
-    model = load_arm(spec.urdf)
-    plant_arm = load_arm(spec.urdf, spec.mass_scale)
-    try:
-        kp, kv = checked_gains(spec.kp, spec.kv, model.dof)
-    except GainError as error:
-        raise EpisodeError(str(error)) from error
-    options = PlantOptions(period=spec.period, substeps=spec.substeps, torque_limit=plan.torque_limit,
-                           viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
-                           external_torque=spec.external_torque)
-    plant = Plant(plant_arm, options, plan.q0, plan.v0)
-    law = make_law(spec.controller, model, kp, kv, plant.options.viscous_friction,
-                   plant.options.coulomb_friction)
-    controller = SampledController(law, spec.delay)
-    samples = plan.k_max + 1
-    dof = model.dof
-    q, v = np.empty((samples, dof)), np.empty((samples, dof))
-    command, torque = np.empty((samples, dof)), np.empty((samples, dof))
-    diverged_at = None
-    scored = samples
-    for n in range(samples):
-        q[n], v[n] = plant.q, plant.v
-        measurement = Measurement(plant.q, plant.v, plan.q_ref[n], plan.v_ref[n])
-        command[n] = controller.step(measurement, ReferencePoint(plan.q_ref[n], plan.v_ref[n], plan.a_ref[n]))
-        if not np.all(np.isfinite(command[n])):
-            diverged_at, scored = n, n
-            break
-        torque[n] = plant.saturate(command[n])
-        if n < plan.k_max and not plant.advance(torque[n]):
-            diverged_at, scored = n + 1, n + 1
-            break
-    result = EpisodeResult(spec, plan, q[:scored], v[:scored], command[:scored], torque[:scored], diverged_at)
-    result.indices = score(plan, result.errors, result.torque)
-    return result

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -56,19 +58,26 @@ class ProgrammedMotion:
         return position, velocity, acceleration
 
 
-# MODEL.md section 4: trajectory 1 starts with the end at (1, 0, 0), trajectory 2 at (0, 2, 0).
-TRAJECTORY_ENDPOINTS = {
-    1: ((0.0, np.pi / 3, -2 * np.pi / 3), (np.pi / 2, 0.0, 0.0)),
-    2: ((np.pi / 2, 0.0, 0.0), (np.pi, np.pi / 2, -np.pi)),
-}
+# The paper's motions are data: ddarm/paper/data/trajectory-<number>.yaml (MODEL.md section 4).
+_PAPER_MOTIONS = {int(path.stem.removeprefix('trajectory-')): path
+                  for path in (Path(__file__).resolve().parents[1] / 'paper' / 'data').glob('trajectory-*.yaml')}
+PAPER_TRAJECTORIES = tuple(sorted(_PAPER_MOTIONS))
+
+
+@lru_cache(maxsize=None)
+def _paper_motion(number: int) -> ProgrammedMotion:
+    from ddarm.motion.files import load_motion  # files.py imports this module: a top-level import would be circular
+
+    return load_motion(_PAPER_MOTIONS[number]).motion
 
 
 def paper_trajectory(number: int, duration: float) -> ProgrammedMotion:
     """Trajectory 1 or 2 of the paper's section 3, of duration T."""
-    if number not in TRAJECTORY_ENDPOINTS:
-        raise MotionError(f'trajectory must be one of {sorted(TRAJECTORY_ENDPOINTS)}, got {number!r}')
-    q0, qf = TRAJECTORY_ENDPOINTS[number]
-    return ProgrammedMotion(np.array(q0), np.array(qf), float(duration))
+    if number not in _PAPER_MOTIONS:
+        raise MotionError(f'trajectory must be one of {sorted(PAPER_TRAJECTORIES)}, got {number!r}')
+    motion = _paper_motion(number)
+    # Fresh arrays, as every call returned before the motions were files: a caller may change its copy.
+    return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
 
 
 def sample_count(duration: float, period: float) -> int:
@@ -88,10 +97,12 @@ def sample_times(duration: float, period: float) -> np.ndarray:
 
 
 def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.ndarray:
-    """P^nom(t) = M(q^d) q̈^d + V(q^d, q̇^d) + G(q^d) at each time (MODEL.md 7); shape (len(times), n)."""
+    """P^nom(t) = M(q^d) q̈^d + V(q^d, q̇^d) + G(q^d) at each time (MODEL.md 7); shape (len(times), n).
+
+    Computed off-line, before the episode, by Pinocchio (the model's source): only the loop runs compiled.
+    """
     positions, velocities, accelerations = motion.sample(times)
-    return np.array([arm.inverse_dynamics(q, v, a)
-                     for q, v, a in zip(positions, velocities, accelerations)])
+    return np.array([arm.inverse_dynamics(q, v, a) for q, v, a in zip(positions, velocities, accelerations)])
 
 
 def paper_torque_limit(nominal: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -120,3 +121,9 @@ class Arm:
             raise ModelError(f'no frame {frame!r} in {self.urdf_path}')
         pin.framesForwardKinematics(self.model, self.data, q)
         return self.data.oMf[self.model.getFrameId(frame)].translation.copy()
+
+
+@lru_cache(maxsize=16)
+def load_arm(urdf: str | None, mass_scale: tuple[float, ...] | None = None) -> Arm:
+    """The arm from a URDF, loaded once per process (Arm holds scratch space: one thread only)."""
+    return Arm.from_urdf(urdf, mass_scale)

@@ -1,13 +1,20 @@
-"""The plant: the arm's continuous dynamics under a torque held over each sampling period (MODEL.md 3, 5, 7)."""
+"""The plant: the arm's continuous dynamics under a torque held over each sampling period (MODEL.md 3, 5, 7).
+
+`advance` is the one definition of the sampled plant step (hold, integration, divergence) and
+`saturate` of the actuators' limit: the batch engine runs them for many episodes at once, the
+plant node (through `Plant`) for one.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+import numba
 import numpy as np
 
+from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.physics.arm import Arm
+from ddarm.physics.dynamics import COMPILED, Chain, forward_dynamics, workspace
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes
@@ -24,20 +31,16 @@ class PlantError(DdarmError, ValueError):
     """A plant option or input that the plant refuses."""
 
 
-def _joint_vector(name: str, value, dof: int, *, positive: bool = False,
-                  non_negative: bool = False) -> np.ndarray | None:
-    if value is None:
-        return None
-    array = np.asarray(value, dtype=float)
-    if array.shape != (dof,):
-        raise PlantError(f'{name} needs {dof} values (one per joint), got {value!r}')
-    if not np.all(np.isfinite(array)):
-        raise PlantError(f'{name} must be finite, got {value!r}')
-    if positive and np.any(array <= 0):
-        raise PlantError(f'{name} must be positive, got {value!r}')
-    if non_negative and np.any(array < 0):
-        raise PlantError(f'{name} must not be negative, got {value!r}')
+def checked_mass_scale(values, dof: int) -> np.ndarray:
+    """The plant's link masses (and moments) against the model's: `dof` finite positive factors."""
+    array = np.asarray(values, dtype=float) if values is not None else None
+    if array is None or array.shape != (dof,) or not np.all(np.isfinite(array) & (array > 0)):
+        raise PlantError(f'mass_scale must be {dof} finite positive numbers, got {values!r}')
     return array
+
+
+def _optional(name: str, values, dof: int, **rule) -> np.ndarray | None:
+    return None if values is None else per_joint(name, values, dof, PlantError, **rule)
 
 
 @dataclass(frozen=True)
@@ -70,64 +73,148 @@ class PlantOptions:
         """These options with every per-joint array validated for a `dof`-joint arm."""
         return PlantOptions(
             period=self.period, substeps=self.substeps,
-            torque_limit=_joint_vector('torque_limit', self.torque_limit, dof, positive=True),
-            viscous_friction=_joint_vector('viscous_friction', self.viscous_friction, dof,
-                                           non_negative=True),
-            coulomb_friction=_joint_vector('coulomb_friction', self.coulomb_friction, dof,
-                                           non_negative=True),
-            external_torque=_joint_vector('external_torque', self.external_torque, dof),
+            torque_limit=_optional('torque_limit', self.torque_limit, dof, positive=True),
+            viscous_friction=_optional('viscous_friction', self.viscous_friction, dof, non_negative=True),
+            coulomb_friction=_optional('coulomb_friction', self.coulomb_friction, dof, non_negative=True),
+            external_torque=_optional('external_torque', self.external_torque, dof),
             max_position=self.max_position, max_velocity=self.max_velocity)
 
 
-@dataclass
-class Plant:
-    """The arm's state (q, q̇) at sample n, advanced one sampling period at a time.
 
-    Once the state leaves the physical bounds (or stops being finite) the plant is
-    `diverged`: its state stays frozen at the last sample within bounds.
+    def compiled(self, dof: int) -> tuple:
+        """The options as the compiled step reads them: zeros for no friction or external torque."""
+        zero = np.zeros(dof)
+        return (zero if self.external_torque is None else np.asarray(self.external_torque, dtype=float),
+                zero if self.viscous_friction is None else np.asarray(self.viscous_friction, dtype=float),
+                zero if self.coulomb_friction is None else np.asarray(self.coulomb_friction, dtype=float),
+                float(self.period), int(self.substeps), float(self.max_position), float(self.max_velocity))
+
+
+def disturbed_initial_state(position: np.ndarray, velocity_at_tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3.1) with MODEL.md 7's sign: start at q^d(0) with q̇(0) = -q̇^d(τ), against the motion."""
+    return np.array(position, dtype=float), -np.array(velocity_at_tau, dtype=float)
+
+
+# The compiled functions keep episodes on the last axis ("lanes"): see ddarm.physics.dynamics.
+@numba.njit(**COMPILED, inline='always')
+def saturate(command, limit, applied, lanes):
+    """The torque the actuators apply: each command clamped to ±limit (inf: no limit), sign kept."""
+    for i in range(command.shape[0]):
+        for b in range(lanes):
+            applied[i, b] = min(max(command[i, b], -limit[i, b]), limit[i, b])
+
+
+@numba.njit(**COMPILED, inline='always')
+def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v, load, lanes):
+    """P + P^z - F(q̇): the actuators' torque plus the plant's other joint torques (MODEL.md 3)."""
+    for i in range(v.shape[0]):
+        for b in range(lanes):
+            load[i, b] = applied[i, b] + (external_torque[i] - viscous_friction[i] * v[i, b]
+                                          - coulomb_friction[i] * np.sign(v[i, b]))
+
+
+@numba.njit(**COMPILED, inline='always')
+def step_workspace(n, lanes):
+    """Scratch arrays for `advance`: the dynamics' workspace and the RK4 stages."""
+    return (workspace(n, lanes), np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)),
+            np.empty((n, lanes)), np.empty((4, n, lanes)), np.empty((4, n, lanes)))
+
+
+@numba.njit(**COMPILED)
+def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
+    """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4, `substeps` steps; MODEL.md 3, 5).
+
+    Each lane whose new state is finite and within the bounds takes it (within[b] = True); any
+    other keeps its state of t_n, frozen as the last one within bounds (within[b] = False).
+    """
+    external_torque, viscous_friction, coulomb_friction, period, substeps, max_position, max_velocity = options
+    work, load, qn, vn, qs, stage_v, stage_a = scratch
+    n = q.shape[0]
+    h = period / substeps
+    qn[:], vn[:] = q, v
+    for _ in range(substeps):
+        qs[:], stage_v[0] = qn, vn
+        for stage in range(4):
+            vs = stage_v[stage]
+            _plant_load(applied, external_torque, viscous_friction, coulomb_friction, vs, load, lanes)
+            forward_dynamics(chain, mass_scale, qs, vs, load, work, stage_a[stage], lanes)
+            if stage < 3:
+                step = h if stage == 2 else 0.5 * h
+                for i in range(n):
+                    for b in range(lanes):
+                        qs[i, b] = qn[i, b] + step * vs[i, b]
+                        stage_v[stage + 1, i, b] = vn[i, b] + step * stage_a[stage, i, b]
+        for i in range(n):
+            for b in range(lanes):
+                qn[i, b] = qn[i, b] + h / 6.0 * (stage_v[0, i, b] + 2.0 * stage_v[1, i, b]
+                                                 + 2.0 * stage_v[2, i, b] + stage_v[3, i, b])
+                vn[i, b] = vn[i, b] + h / 6.0 * (stage_a[0, i, b] + 2.0 * stage_a[1, i, b]
+                                                 + 2.0 * stage_a[2, i, b] + stage_a[3, i, b])
+    for b in range(lanes):
+        inside = True
+        for i in range(n):
+            inside = (inside and np.isfinite(qn[i, b]) and np.isfinite(vn[i, b])
+                      and abs(qn[i, b]) <= max_position and abs(vn[i, b]) <= max_velocity)
+        within[b] = inside
+        if inside:
+            for i in range(n):
+                q[i, b], v[i, b] = qn[i, b], vn[i, b]
+
+
+@numba.njit(**COMPILED)
+def _advance_one(chain, mass_scale, options, applied, q, v):
+    """`advance` for one episode, its workspace made here: the plant node's step."""
+    within = np.empty(1, dtype=np.bool_)
+    advance(chain, mass_scale, options, applied, q, v, within, step_workspace(q.shape[0], 1), 1)
+    return within[0]
+
+
+class Plant:
+    """One episode's plant: the state (q, q̇) at sample n, advanced one sampling period at a time.
+
+    Once the state leaves the physical bounds (or stops being finite) the plant is `diverged`:
+    its state stays frozen at the last sample within bounds. `mass_scale` scales each link of
+    the plant against `chain` (the model), as MODEL.md's plant/model mismatch does.
     """
 
-    arm: Arm
-    options: PlantOptions
-    q: np.ndarray
-    v: np.ndarray
-    sample: int = 0
-    diverged: bool = False
-    _zero: np.ndarray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        self.options = self.options.checked(self.arm.dof)
-        self.q = self._state_vector('initial position', self.q)
-        self.v = self._state_vector('initial velocity', self.v)
-        self._zero = np.zeros(self.arm.dof)
+    def __init__(self, chain: Chain, options: PlantOptions, q, v, mass_scale=None) -> None:
+        dof = chain.dof
+        self.dof = dof
+        self.options = options.checked(dof)
+        self._chain = chain.arrays()
+        self._compiled_options = self.options.compiled(dof)
+        scale = np.ones(dof) if mass_scale is None else checked_mass_scale(mass_scale, dof)
+        self._mass_scale = np.ascontiguousarray(scale[:, None])
+        limit = self.options.torque_limit
+        self._limit = np.full((dof, 1), np.inf) if limit is None else np.ascontiguousarray(limit[:, None])
+        self._q = self._state_vector('initial position', q)[:, None].copy()
+        self._v = self._state_vector('initial velocity', v)[:, None].copy()
+        self.sample = 0
+        self.diverged = False
 
     def _state_vector(self, name: str, value) -> np.ndarray:
         array = np.array(value, dtype=float)
-        if array.shape != (self.arm.dof,) or not np.all(np.isfinite(array)):
-            raise PlantError(f'{name} must be {self.arm.dof} finite numbers, got {value!r}')
+        if array.shape != (self.dof,) or not np.all(np.isfinite(array)):
+            raise PlantError(f'{name} must be {self.dof} finite numbers, got {value!r}')
         return array
+
+    @property
+    def q(self) -> np.ndarray:
+        return self._q[:, 0].copy()
+
+    @property
+    def v(self) -> np.ndarray:
+        return self._v[:, 0].copy()
 
     @property
     def time(self) -> float:
         return self.sample * self.options.period
 
-    def saturate(self, torque: np.ndarray) -> np.ndarray:
-        """The torque the actuators apply for a command: clamped to ±limit, sign kept."""
-        limit = self.options.torque_limit
-        return torque if limit is None else np.clip(torque, -limit, limit)
-
-    def _external(self, v: np.ndarray) -> np.ndarray:
-        """P^z - F(q̇): joint torques other than the actuators' (MODEL.md 2-3)."""
-        options = self.options
-        torque = self._zero if options.external_torque is None else options.external_torque
-        if options.viscous_friction is not None:
-            torque = torque - options.viscous_friction * v
-        if options.coulomb_friction is not None:
-            torque = torque - options.coulomb_friction * np.sign(v)
-        return torque
-
-    def _acceleration(self, q: np.ndarray, v: np.ndarray, torque: np.ndarray) -> np.ndarray:
-        return self.arm.forward_dynamics(q, v, torque + self._external(v))
+    def saturate(self, command: np.ndarray) -> np.ndarray:
+        """The torque the actuators apply for a command (`saturate`)."""
+        applied = np.empty((self.dof, 1))
+        saturate(np.ascontiguousarray(np.asarray(command, dtype=float)[:, None]), self._limit, applied, 1)
+        return applied[:, 0]
 
     def advance(self, applied_torque: np.ndarray) -> bool:
         """Integrate [t_n, t_{n+1}) under a constant applied torque (zero-order hold).
@@ -136,37 +223,20 @@ class Plant:
         Raises PlantError for a torque that is not `dof` finite numbers: nothing is integrated.
         """
         torque = np.asarray(applied_torque, dtype=float)
-        if torque.shape != (self.arm.dof,) or not np.all(np.isfinite(torque)):
-            raise PlantError(f'sample {self.sample}: torque must be {self.arm.dof} finite numbers, '
+        if torque.shape != (self.dof,) or not np.all(np.isfinite(torque)):
+            raise PlantError(f'sample {self.sample}: torque must be {self.dof} finite numbers, '
                              f'got {applied_torque!r}')
         if self.diverged:
             return False
-        h = self.options.period / self.options.substeps
-        q, v = self.q, self.v
-        with np.errstate(all='ignore'):
-            for _ in range(self.options.substeps):
-                a1 = self._acceleration(q, v, torque)
-                q2, v2 = q + 0.5 * h * v, v + 0.5 * h * a1
-                a2 = self._acceleration(q2, v2, torque)
-                q3, v3 = q + 0.5 * h * v2, v + 0.5 * h * a2
-                a3 = self._acceleration(q3, v3, torque)
-                q4, v4 = q + h * v3, v + h * a3
-                a4 = self._acceleration(q4, v4, torque)
-                q = q + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
-                v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        if not self.within_bounds(q, v):
+        if not _advance_one(self._chain, self._mass_scale, self._compiled_options,
+                            np.ascontiguousarray(torque[:, None]), self._q, self._v):
             self.diverged = True
             return False
-        self.q, self.v = q, v
         self.sample += 1
         return True
 
-    def within_bounds(self, q: np.ndarray, v: np.ndarray) -> bool:
-        return bool(np.all(np.isfinite(q)) and np.all(np.isfinite(v))
-                    and np.max(np.abs(q)) <= self.options.max_position
-                    and np.max(np.abs(v)) <= self.options.max_velocity)
 
-
-def disturbed_initial_state(position: np.ndarray, velocity_at_tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3.1) with MODEL.md 7's sign: start at q^d(0) with q̇(0) = -q̇^d(τ), against the motion."""
-    return np.array(position, dtype=float), -np.array(velocity_at_tau, dtype=float)
+def warm_up(chain: Chain) -> None:
+    """Load the compiled step (from numba's cache, or compile it) now, not at an episode's first sample."""
+    plant = Plant(chain, PlantOptions(), np.zeros(chain.dof), np.zeros(chain.dof))
+    plant.advance(plant.saturate(np.zeros(chain.dof)))

@@ -27,7 +27,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from ddarm.errors import DdarmError
 from ddarm.samples import MessageError, joint_order, sample_at
-from ddarm.episodes.spec import EpisodePlan, EpisodeResult, EpisodeSpec, score
+from ddarm.episodes.result import Episodes
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.interrupts import Interrupted, critical_section
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -474,10 +475,9 @@ def score_bag(path: Path | str) -> dict:
     limit = bag.episode.get('torque_limit')
     plan = EpisodePlan(bag.reference_times, bag.q_ref, bag.v_ref, bag.a_ref, bag.nominal,
                        None if limit is None else np.array(limit), bag.states[0][0], bag.states[0][1])
-    result = EpisodeResult(
+    result = Episodes.from_samples(
         spec, plan, q=np.array([bag.states[n][0] for n in range(last + 1)]),
         v=np.array([bag.states[n][1] for n in range(last + 1)]),
         command=np.array([bag.commands[n] for n in range(last + 1)]),
         torque=np.array([bag.states[n + 1][2] for n in range(last + 1)]), diverged_at=diverged_at)
-    result.indices = score(plan, result.errors, result.torque)
     return {**result.summary(), 'bag': str(path)}

@@ -51,7 +51,11 @@ class RunFolder:
         self._handler.setFormatter(logging.Formatter('%(asctime)s %(levelname)s %(message)s'))
         self.log.addHandler(self._handler)
         self.log.info('run %s: %s', name, command)
-        self._write_summary()
+        try:
+            self._write_summary()
+        except BaseException:
+            self._close_log()
+            raise
 
     @staticmethod
     def checked_root(root: Path | str = DEFAULT_ROOT) -> Path:
@@ -91,9 +95,12 @@ class RunFolder:
             self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
             self._write_summary()
             self.log.info('run %s', status)
-            self.log.removeHandler(self._handler)
-            self._handler.close()
+            self._close_log()
             self.finished = True
+
+    def _close_log(self) -> None:
+        self.log.removeHandler(self._handler)
+        self._handler.close()
 
     def __enter__(self) -> RunFolder:
         return self

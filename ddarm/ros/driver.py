@@ -1,25 +1,18 @@
-"""Episodes run through the ROS 2 graph: a driver node configures the plant and a controller through
-their parameter services, publishes the programmed motion, runs the episode, records it (optionally
-as a bag) and scores what it heard."""
+"""The driver: a node that checks the graph, configures the plant and a controller through their
+parameter services, publishes the programmed motion, runs the episode, records it (optionally as a
+bag) and scores what it heard. The node processes it drives are started by `ddarm.ros.session`."""
 
 from __future__ import annotations
 
 import json
-import os
-import secrets
-import subprocess
-import sys
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import rclpy
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -31,19 +24,19 @@ from trajectory_msgs.msg import JointTrajectory
 
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
-from ddarm.ros.lifetime import child_environment
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
-                                     EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                     SAMPLE_QOS, read_joint_state, reference_msg)
+                                 EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
+                                 SAMPLE_QOS, read_joint_state, reference_msg)
+from ddarm.ros.names import fully_qualified, namespace_arguments
+from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, _service_parameters,
+                                       node_parameters)
 from ddarm.samples import MessageError
-from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
-from ddarm.episodes.spec import EpisodePlan, EpisodeResult, EpisodeSpec, check_episode, load_arm, score
+from ddarm.recording.bags import EpisodeBagWriter
+from ddarm.episodes.result import Episodes
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
+from ddarm.physics.arm import load_arm
 from ddarm.interrupts import check_stop
 
-# Lockstep waits this long (wall clock) for a command before the plant ends the episode.
-COMMAND_TIMEOUT = 10.0
-# The plant starts an episode once this many nodes listen to it: the controller and the driver.
-GRAPH_SUBSCRIBERS = 2
 # Wall seconds to wait for the plant and the controller to be on the graph, alone, before an episode.
 PEER_TIMEOUT = 20.0
 # How often the graph is checked while an episode runs, and how long a node may be missing from
@@ -59,54 +52,19 @@ STALL_TIMEOUT = COMMAND_TIMEOUT + 5.0
 # Before the plant starts an episode, the states and commands still in flight from the one before
 # (a controller that was slow or stopped answers late) must have arrived: this long without any.
 QUIET_PERIOD = 0.05
-# Plant counters that make a lockstep episode, or a real-time one, a failed episode: a command the
-# plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 # The profile each recorded topic's publisher declares (ddarm.ros.interface).
 TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: SAMPLE_QOS,
              '/' + REFERENCE_TOPIC: REFERENCE_QOS, CLOCK_TOPIC: CLOCK_QOS, DIAGNOSTICS_TOPIC: DIAGNOSTICS_QOS}
+# Plant counters that make a lockstep episode, or a real-time one, a failed episode: a command the
+# plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
 FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicate_commands'),
                     'realtime': ('refused_commands', 'duplicate_commands')}
 
 
 class GraphEpisodeError(DdarmError, RuntimeError):
     """An episode over ROS that did not complete; the text says which sample and why."""
-
-
-def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep') -> dict:
-    """The parameters (as a node: ros__parameters: mapping) that make the plant and controller run `spec`.
-
-    Per-joint options left out mean "none"; set through the parameter services, they are empty arrays.
-    """
-    plant = {
-        'mode': mode, 'period': spec.period, 'substeps': spec.substeps, 'command_timeout': COMMAND_TIMEOUT,
-        'required_subscribers': GRAPH_SUBSCRIBERS, 'max_samples': plan.k_max + 1, 'autostart': False,
-        'trajectory': spec.trajectory, 'duration': spec.duration, 'tau': spec.tau,
-    }
-    optional = {'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
-                'viscous_friction': spec.viscous_friction, 'coulomb_friction': spec.coulomb_friction,
-                'external_torque': spec.external_torque, 'mass_scale': spec.mass_scale}
-    plant.update({name: [float(x) for x in value] for name, value in optional.items() if value is not None})
-    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0, 'compute_delay_steps': spec.delay,
-                  'period': spec.period}
-    # The in-process runner gives computed torque the plant's friction as its model F̂; so does this.
-    controller.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')
-                       if getattr(spec, name) is not None})
-    if spec.urdf:
-        plant['urdf'] = controller['urdf'] = spec.urdf
-    return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
-
-
-def _service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
-    """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
-    parameters = [Parameter(name, value=value) for name, value in values.items() if name != 'urdf']
-    parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
-    return parameters
-
-
-PLANT_OPTIONAL = ('torque_limit', 'viscous_friction', 'coulomb_friction', 'external_torque', 'mass_scale')
-CONTROLLER_OPTIONAL = ('viscous_friction', 'coulomb_friction')
 
 
 @dataclass
@@ -153,27 +111,6 @@ class Recording:
 
 def _stamp_ns(stamp) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def fully_qualified(name: str, namespace: str) -> str:
-    return f"{namespace.rstrip('/')}/{name}"
-
-
-def session_namespace() -> str:
-    """A namespace no other graph on this machine or network uses.
-
-    A namespace per session is how ROS runs several robots on one domain: every topic and
-    service of the session is its own, and the domain (which the user chose) stays as it is.
-    """
-    return f'/ddarm_{os.getpid()}_{secrets.token_hex(4)}'
-
-
-def namespace_arguments(namespace: str) -> list[str]:
-    """--ros-args rules that put a node, its relative topics and the absolute /clock and /diagnostics in `namespace`."""
-    if not namespace or namespace == '/':
-        return []
-    return ['-r', f'__ns:={namespace}', '-r', f'{CLOCK_TOPIC}:={namespace}{CLOCK_TOPIC}',
-            '-r', f'{DIAGNOSTICS_TOPIC}:={namespace}{DIAGNOSTICS_TOPIC}']
 
 
 def qos_description(profile) -> dict:
@@ -458,7 +395,7 @@ class GraphDriver(Node):
 
     def run_episode(self, executor, spec: EpisodeSpec, plan: EpisodePlan | None = None,
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
-                    alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> EpisodeResult:
+                    alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> Episodes:
         """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died."""
         plan = plan if plan is not None else check_episode(spec)
         self.wait_for_peers(executor, spec.controller, peer_timeout, alive)
@@ -552,7 +489,7 @@ def plant_counters(report: dict, names, plant: str) -> dict[str, int]:
                                 'a foreign publisher on /diagnostics?') from error
 
 
-def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> EpisodeResult:
+def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> Episodes:
     """Arrange the recorded samples as the in-process runner does, and score them."""
     last = plan.k_max if recording.diverged_at is None else recording.diverged_at - 1
     missing = [n for n in range(last + 2) if n not in recording.states]
@@ -560,13 +497,11 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
     if missing:
         raise GraphEpisodeError(f'samples {sorted(set(missing))} are missing from the recording')
     states = [recording.states[n] for n in range(last + 1)]
-    result = EpisodeResult(
+    return Episodes.from_samples(
         spec, plan, q=np.array([s.q for s in states]), v=np.array([s.v for s in states]),
         command=np.array([recording.commands[n] for n in range(last + 1)]),
         torque=np.array([recording.states[n + 1].effort for n in range(last + 1)]),
         diverged_at=recording.diverged_at, plant_report=recording.plant_report)
-    result.indices = score(plan, result.errors, result.torque)
-    return result
 
 
 def realtime_warnings(plant_report: dict | None) -> list[str]:
@@ -586,151 +521,3 @@ def realtime_warnings(plant_report: dict | None) -> list[str]:
         warnings.append(f"{misses} deadline miss(es) (a tick over 1.5 periods after the one before; period jitter "
                         f"max {float(plant_report.get('period_jitter_max_ms', 'nan')):.3g} ms)")
     return warnings
-
-
-def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
-    """The configuration a bag carries, so that the bag alone says what was run."""
-    return {'spec': spec.to_dict(), 'joints': load_arm(spec.urdf).joint_names, 'k_max': plan.k_max,
-            'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
-            'transport': transport, 'command': command,
-            'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'))}
-
-
-class GraphSession:
-    """The plant and a controller as separate processes over DDS, with a driver in this process.
-
-    The session's nodes live in a namespace of their own (`session_namespace`), so two sessions,
-    or a session and a user's graph, on one domain never hear each other. The node processes live
-    as long as the session, so episodes cost no start-up, and no longer: they end when it closes
-    and, should this process be killed, with it (`ddarm.ros.lifetime`). Switching controller
-    stops the other law's process, because two laws would answer the same states.
-    """
-
-    def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
-        self._temporary = tempfile.TemporaryDirectory(prefix='ddarm-graph-') if folder is None else None
-        self.folder = Path(folder if folder is not None else self._temporary.name)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.timeout = timeout
-        self.namespace = session_namespace()
-        self.processes: dict[str, subprocess.Popen] = {}
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
-        self.driver = GraphDriver(namespace=self.namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.driver)
-        try:
-            self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
-                                                       'command_timeout': COMMAND_TIMEOUT})
-        except BaseException:
-            self.close()
-            raise
-
-    def _start(self, name: str, module: list[str], parameters: dict) -> None:
-        path = self.folder / f'{name}.parameters.yaml'
-        path.write_text(yaml.safe_dump({fully_qualified(name, self.namespace): {'ros__parameters': parameters}}))
-        with open(self.folder / f'{name}.log', 'w') as log:
-            # A session of its own: a Ctrl-C in the terminal reaches this process, which stops its nodes in order.
-            self.processes[name] = subprocess.Popen(
-                [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
-                 '--params-file', str(path)],
-                stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
-
-    def use_controller(self, law: str, spec: EpisodeSpec) -> None:
-        """Start the `law` controller process (stopping the other law's) unless it runs already."""
-        for other in CONTROLLERS:
-            if other != law and other in self.processes:
-                self._stop(other)
-        if law not in self.processes:
-            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)})
-
-    def check_alive(self) -> None:
-        for name, process in self.processes.items():
-            if process.poll() is not None:
-                tail = (self.folder / f'{name}.log').read_text()[-2000:]
-                raise GraphEpisodeError(f'the {name} node ({fully_qualified(name, self.namespace)}) exited with '
-                                        f'code {process.returncode}:\n{tail}')
-
-    def ready(self, spec: EpisodeSpec) -> None:
-        """The `spec` law's controller running and both nodes on the graph, alone."""
-        self.use_controller(spec.controller, spec)
-        self.driver.wait_for_peers(self.executor, spec.controller, alive=self.check_alive)
-
-    def open_bag(self, path: Path | str, spec: EpisodeSpec, plan: EpisodePlan, transport: str, storage: str,
-                 command: str | None) -> EpisodeBagWriter:
-        """A bag for the next episode of `spec`, once its nodes are up (the bag records what they offer)."""
-        self.ready(spec)
-        return self.driver.open_bag(path, episode_record(spec, plan, transport, command), storage)
-
-    def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
-            realtime: bool = False) -> EpisodeResult:
-        self.use_controller(spec.controller, spec)
-        return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
-                                       self.timeout, alive=self.check_alive)
-
-    def _stop(self, name: str) -> None:
-        process = self.processes.pop(name)
-        if process.poll() is None:
-            process.send_signal(subprocess.signal.SIGINT)
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-
-    def close(self) -> None:
-        for name in list(self.processes):
-            self._stop(name)
-        self.executor.shutdown()
-        self.driver.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-        if self._temporary is not None:
-            self._temporary.cleanup()
-
-    def __enter__(self) -> GraphSession:
-        return self
-
-    def __exit__(self, kind, error, traceback) -> None:
-        if error is None:
-            self.close()
-            return
-        try:  # a failure to stop cleanly must not hide why the session ended
-            self.close()
-        except Exception as cleanup:
-            error.add_note(f'while closing the graph session: {type(cleanup).__name__}: {cleanup}')
-
-
-def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storage: str = 'mcap',
-                     command: str | None = None) -> tuple[EpisodeResult, dict]:
-    """Run `spec` through the graph in lockstep, record it at `bag`, and score it from the bag alone.
-
-    Returns what the driver heard and the bag's score (the JSON of `ddarm score`); the bag is
-    closed and marked complete or incomplete whatever happens.
-    """
-    from ddarm.recording.bags import score_bag
-
-    plan = check_episode(spec)
-    with session.open_bag(bag, spec, plan, 'ros-lockstep', storage, command) as writer:
-        result = session.run(spec, plan, writer)
-        writer.close(complete=True)
-    return result, score_bag(bag)
-
-
-def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
-                      bag: Path | str | None = None, storage: str = 'mcap', command: str | None = None,
-                      ) -> EpisodeResult:
-    """Run `spec` through plant and controller processes over DDS and score what the driver recorded.
-
-    With `bag`, the episode is also recorded there; the bag is closed (and marked complete or
-    incomplete) whatever happens, so a killed or failed run never passes for a good one.
-    """
-    plan = check_episode(spec)
-    if bag is not None:
-        checked_output_path(bag)  # refused before any node starts
-    transport = 'ros-realtime' if realtime else 'ros-lockstep'
-    with GraphSession(timeout=timeout) as session:
-        if bag is None:
-            return session.run(spec, plan, realtime=realtime)
-        with session.open_bag(bag, spec, plan, transport, storage, command) as writer:
-            result = session.run(spec, plan, writer, realtime)
-            writer.close(complete=True)
-        return result

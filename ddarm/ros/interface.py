@@ -1,4 +1,5 @@
-"""The ROS 2 interface every ddarm node shares: topic names, QoS profiles, and message <-> array conversion.
+"""The ROS 2 interface every ddarm node shares: topic names, QoS profiles, message <-> array conversion,
+and the parameter checks (descriptors, undeclared or unknown parameters).
 
 Conversions refuse bad messages with a MessageError naming the problem, before any
 number reaches the core.
@@ -8,7 +9,6 @@ from __future__ import annotations
 
 import array
 import math
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +18,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
+# A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
+from ddarm.ros.executable import context_arguments
+from ddarm.ros.parameter_files import given_parameters
 from ddarm.samples import MessageError, joint_order, sample_at
 
 JOINT_STATES_TOPIC = 'joint_states'
@@ -180,10 +182,17 @@ def descriptor(description: str, *, floating: tuple[float, float] | None = None,
     return described
 
 
-def undeclared_overrides(node) -> list[str]:
-    """Parameters given to the node (YAML or -p) that it never declared: most likely typos."""
-    # rclpy has no public view of the overrides a node was given.
-    return sorted(name for name in node._parameter_overrides
+def undeclared_overrides(node, given=()) -> list[str]:
+    """Parameters given to the node that it never declared: most likely typos.
+
+    Given: by its context's command line (parameter files and -p rules, matched to the node's
+    name by rcl's rules: `ddarm.ros.parameter_files.given_parameters`), and the `given`
+    Parameters of its constructor's parameter_overrides. rclpy has no public view of a node's
+    overrides, so the node's own cli_args are not seen (ddarm's nodes set parameters with none).
+    """
+    names = {*given_parameters(context_arguments(node.context), node.get_fully_qualified_name()),
+             *(parameter.name for parameter in given or ())}
+    return sorted(name for name in names
                   if not node.has_parameter(name) and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
 
 
@@ -216,63 +225,3 @@ def plain_parameters(values: dict) -> dict:
     """Parameter values as JSON takes them (arrays as lists), for replies that say what a node runs with."""
     return {name: list(value) if isinstance(value, (list, tuple, array.array)) else value
             for name, value in values.items()}
-
-
-def parameter_file_refusal(parameter_files: dict, name: str) -> ParameterFileError | None:
-    """Why a node named `name` got none of its parameter files' values, if it did not."""
-    import rclpy
-
-    # A bare node under the same remapping rules tells the name the refused one would have had.
-    stand_in = rclpy.create_node(name, enable_rosout=False)
-    try:
-        refuse_unconfigured(parameter_files, stand_in.get_fully_qualified_name())
-    except ParameterFileError as error:
-        return error
-    finally:
-        stand_in.destroy_node()
-    return None
-
-
-def run_node(make_node, name: str, refusals: tuple, args=None) -> int:
-    """A node's whole life as an executable: 0 after a normal end (Ctrl-C, SIGTERM, shutdown), 2 if refused.
-
-    `make_node` builds the node named `name` after rclpy.init; an exception in `refusals` while it
-    does (a bad parameter file, say) is printed as the reason the node refused to start, as is a
-    parameter file that rcl cannot parse or that configures no node of this name.
-    """
-    import rclpy
-    from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException
-
-    from ddarm.ros.lifetime import follow_parent
-
-    follow_parent()
-    try:
-        # Read before rcl does, so that a file it cannot parse is refused in our words, naming it.
-        parameter_files = read_parameter_files(sys.argv if args is None else args)
-    except ParameterFileError as error:
-        print(f'{name}: refused to start: {error}', flush=True)
-        return 2
-    try:
-        rclpy.init(args=args)
-    except RuntimeError as error:  # rclpy's errors of rcl (unknown arguments, a file it cannot parse)
-        print(f'{name}: refused to start: rcl refused the arguments: {error}', flush=True)
-        return 2
-    node = None
-    try:
-        node = make_node()
-        refuse_unconfigured(parameter_files, node.get_fully_qualified_name())
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (*refusals, ParameterException, ParameterFileError) as error:
-        if node is None and parameter_files:
-            # Refused on defaults (a controller without gains, say): a file for another node is the cause.
-            error = parameter_file_refusal(parameter_files, name) or error
-        print(f'{name}: refused to start: {error}', flush=True)
-        return 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0

@@ -9,6 +9,9 @@ the node, with the rules rcl uses to match keys:
 - a key without a leading slash is absolute: `plant` is `/plant`, never `/ns/plant`;
 - a `*` token stands for exactly one name, a `**` token for any number of them (none too):
   `/**` configures every node, `/*/plant` a `plant` one namespace deep, `/**/plant` every `plant`.
+
+By the same rules it tells which parameters the arguments give a node (`given_parameters`): rclpy
+has no public view of a node's overrides, and a node checks them for names it never declared.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import yaml
 from ddarm.errors import DdarmError
 
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
+PARAM_FLAGS = ('-p', '--param')
 PARAMETERS_KEY = 'ros__parameters'
 # rcl flags that take the next argument as their value (which is then not a flag of its own).
 _FLAGS_WITH_VALUE = {'-r', '--remap', '-p', '--param', PARAMS_FILE, '-e', '--enclave', '--log-level',
@@ -31,9 +35,8 @@ class ParameterFileError(DdarmError, ValueError):
     """A parameter file that cannot configure the node; the text names the file."""
 
 
-def parameter_file_paths(arguments: Sequence[str]) -> list[str]:
-    """The `--params-file` paths of every `--ros-args` block (each ends at `--`), in order."""
-    paths = []
+def _flag_values(arguments: Sequence[str]):
+    """(flag, value) for each flag that takes a value in every `--ros-args` block (each ends at `--`), in order."""
     in_ros_args = False
     arguments = list(arguments)
     index = 0
@@ -44,30 +47,34 @@ def parameter_file_paths(arguments: Sequence[str]) -> list[str]:
         elif argument == END_OF_ROS_ARGS:
             in_ros_args = False
         elif argument in _FLAGS_WITH_VALUE:
-            if argument == PARAMS_FILE and index + 1 < len(arguments):
-                paths.append(arguments[index + 1])
+            if index + 1 < len(arguments):
+                yield argument, arguments[index + 1]
             index += 1
         index += 1
-    return paths
+
+
+def parameter_file_paths(arguments: Sequence[str]) -> list[str]:
+    """The `--params-file` paths of every `--ros-args` block (each ends at `--`), in order."""
+    return [value for flag, value in _flag_values(arguments) if flag == PARAMS_FILE]
 
 
 def _join(namespace: str, key: str) -> str:
     return key if not namespace else namespace + ('' if namespace.endswith('/') else '/') + key
 
 
-def _node_keys(mapping: dict, namespace: str = '') -> list[str]:
-    keys = []
+def _node_parameters(mapping: dict, namespace: str = '') -> list[tuple[str, object]]:
+    """(node key, its `ros__parameters` mapping) for every node the document configures, namespaces joined."""
+    nodes = []
     for key, value in mapping.items():
         if key == PARAMETERS_KEY:
             if namespace:
-                keys.append(namespace)
+                nodes.append((namespace, value))
         elif isinstance(value, dict):
-            keys.extend(_node_keys(value, _join(namespace, str(key))))
-    return keys
+            nodes.extend(_node_parameters(value, _join(namespace, str(key))))
+    return nodes
 
 
-def node_keys(path: str) -> list[str]:
-    """The node names (as written, namespaces joined) whose `ros__parameters` the file holds."""
+def _document(path: str) -> dict:
     try:
         with open(path, encoding='utf-8') as stream:
             document = yaml.safe_load(stream)
@@ -79,11 +86,30 @@ def node_keys(path: str) -> list[str]:
     if not isinstance(document, dict):
         raise ParameterFileError(f'parameter file {path} is not a mapping of node names to {PARAMETERS_KEY} '
                                  f"(it holds {'nothing' if document is None else type(document).__name__})")
-    keys = _node_keys(document)
+    return document
+
+
+def node_keys(path: str) -> list[str]:
+    """The node names (as written, namespaces joined) whose `ros__parameters` the file holds."""
+    document = _document(path)
+    keys = [key for key, _ in _node_parameters(document)]
     if not keys:
         raise ParameterFileError(f'parameter file {path} configures no node: no {PARAMETERS_KEY} under a node '
                                  f'name (its keys: {", ".join(str(key) for key in document) or "none"})')
     return keys
+
+
+def _parameter_names(parameters, prefix: str = '') -> list[str]:
+    """The parameter names of a `ros__parameters` mapping: nested mappings are dotted names, as rcl reads them."""
+    if not isinstance(parameters, dict):
+        return []
+    names = []
+    for key, value in parameters.items():
+        if isinstance(value, dict):
+            names.extend(_parameter_names(value, f'{prefix}{key}.'))
+        else:
+            names.append(f'{prefix}{key}')
+    return names
 
 
 def node_key_pattern(key: str) -> re.Pattern:
@@ -107,6 +133,26 @@ def configures(key: str, fully_qualified_name: str) -> bool:
 def read_parameter_files(arguments: Sequence[str]) -> dict[str, list[str]]:
     """Each `--params-file` of the arguments with its node keys; refuses a file that configures no node."""
     return {path: node_keys(path) for path in parameter_file_paths(arguments)}
+
+
+def given_parameters(arguments: Sequence[str], fully_qualified_name: str) -> list[str]:
+    """The names of the parameters the arguments give the node `fully_qualified_name`, by rcl's rules.
+
+    Each `--params-file`'s parameters under a node key that configures the node, and each
+    `-p name:=value` (every node) or `-p node:name:=value` (the nodes `node` configures).
+    """
+    names = []
+    for flag, value in _flag_values(arguments):
+        if flag == PARAMS_FILE:
+            for key, parameters in _node_parameters(_document(value)):
+                if configures(key, fully_qualified_name):
+                    names.extend(_parameter_names(parameters))
+        elif flag in PARAM_FLAGS:
+            rule, assigned, _ = value.partition(':=')
+            node, _, name = rule.rpartition(':')
+            if assigned and (not node or configures(node, fully_qualified_name)):
+                names.append(name)
+    return list(dict.fromkeys(names))
 
 
 def refuse_unconfigured(files: dict[str, list[str]], fully_qualified_name: str) -> None:

@@ -10,8 +10,10 @@ import numpy as np
 
 from ddarm.control.gains import (computed_torque_error_external, computed_torque_error_mass, pd_gravity_error,
                                  smallest_omega)
-from ddarm.motion.programmed import paper_trajectory
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega, load_arm, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega
+from ddarm.motion.programmed import paper_torque_limit, paper_trajectory
+from ddarm.physics.arm import load_arm
 
 
 @dataclass(frozen=True)
@@ -83,12 +85,14 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     while omega <= omega_max + 1e-12:
         kp, kv = gains_from_omega(spec.controller, omega, spec.urdf, final)
         result = run_episode(dataclasses.replace(unlimited, kp=kp, kv=kv))
-        largest = np.max(np.abs(result.torque), axis=0)
+        largest = np.max(np.abs(result.scored('torque')), axis=0)
         nominal = np.max(np.abs(result.plan.nominal), axis=0)
-        limit = 2.0 * nominal if spec.torque_limit in ('none', 'paper') else np.array(spec.torque_limit)
+        limit = (paper_torque_limit(result.plan.nominal) if spec.torque_limit in ('none', 'paper')
+                 else np.array(spec.torque_limit))
         to_limit, to_nominal = float(np.max(largest / limit)), float(np.max(largest / nominal))
-        accepted = not result.diverged and to_limit <= 1.0 and to_nominal <= torque_factor
-        steps.append(OmegaStep(float(omega), to_limit, to_nominal, result.diverged, accepted, result.indices))
+        diverged = bool(result.diverged[0])
+        accepted = not diverged and to_limit <= 1.0 and to_nominal <= torque_factor
+        steps.append(OmegaStep(float(omega), to_limit, to_nominal, diverged, accepted, result.indices()))
         if not accepted:
             break
         chosen, chosen_gains = float(omega), (kp, kv)

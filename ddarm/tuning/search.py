@@ -1,4 +1,4 @@
-"""Optimisation of the indices (2.5) and (3.2) over the six diagonal gains (MODEL.md 9), through the batch engine.
+"""Optimisation of the indices I1 (2.5), I2 or I (3.2) over the six diagonal gains (MODEL.md 9), through the batch engine.
 
 Both methods search x = (log k_p, log k_v), so every point is a valid positive gain and a
 step means the same relative change for a large and a small gain. Every evaluation of an
@@ -15,12 +15,11 @@ import numpy as np
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import paper_trajectory
 from ddarm.episodes.engine import simulate_batch
+from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeSpec, gains_from_omega, plan_episode
 from ddarm.interrupts import check_stop
 
 METHODS = ('nelder-mead', 'cma')
-# The paper's index names, and the batch result field each one reads.
-INDICES = {'2.5': 'index_2_5', '3.2': 'index_3_2'}
 # A diverged episode is scored on the samples before its divergence, which can be few and
 # score low: an optimiser sees DIVERGED_PENALTY x (2 - scored fraction) instead, far beyond
 # any index of an episode whose state stayed within the plant's bounds, and worse the earlier
@@ -43,7 +42,7 @@ class SearchError(DdarmError, ValueError):
 class SearchResult:
     """The best gains found, and every episode evaluated on the way (in evaluation order).
 
-    `index` is the best gains' index (2.5) or (3.2), +inf if every episode diverged;
+    `index` is the best gains' value of the index named `index_name`, +inf if every episode diverged;
     history_index holds +inf for the diverged episodes. `batches` counts the batch calls.
     """
 
@@ -69,7 +68,7 @@ class _Objective:
 
     def __init__(self, template: EpisodeSpec, index_name: str, budget: int) -> None:
         self.template = template
-        self.field = INDICES[index_name]
+        self.field = index_name
         self.plan = plan_episode(template)
         self.budget = budget
         self.evaluations = 0
@@ -137,12 +136,12 @@ def _start_points(start_kp, start_kv) -> np.ndarray:
 def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budget: int,
                  method: str = 'nelder-mead', seed: int = 0, step: float = 0.5,
                  popsize: int | None = None) -> SearchResult:
-    """Minimise index (2.5) or (3.2) of `template`'s episode over its diagonal gains (MODEL.md 9).
+    """Minimise the index I1 (2.5), I2 or I (3.2) of `template`'s episode over its diagonal gains (MODEL.md 9).
 
     Args:
         template: the episode (controller, trajectory, T, Δ, delay, τ, limits, plant); its own
             kp and kv are not used.
-        index: '2.5' (I1) or '3.2' (I = I1 + I2).
+        index: 'I1', 'I2' or 'I' (= I1 + I2).
         start_kp, start_kv: start gains, shape (S, n) each (e.g. omega_starts).
         budget: the most points evaluated (episodes, plus Nelder-Mead points outside GAIN_RANGE,
             which are not simulated); the search stops before a batch that would exceed it.
@@ -155,7 +154,7 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
     The result is a pure function of the arguments. Raises SearchError for a bad specification.
     """
     if index not in INDICES:
-        raise SearchError(f'index must be one of {sorted(INDICES)}, got {index!r}')
+        raise SearchError(f'index must be one of {list(INDICES)}, got {index!r}')
     if method not in METHODS:
         raise SearchError(f'method must be one of {METHODS}, got {method!r}')
     if not (np.isfinite(step) and step > 0):

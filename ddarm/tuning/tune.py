@@ -8,10 +8,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ddarm.control.gains import SEARCH_START_OMEGAS
-from ddarm.episodes.spec import EpisodeSpec, run_episode
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.spec import EpisodeSpec
 from ddarm.tuning.search import SearchResult, omega_starts, search_gains
-
-INDEX_KEYS = {'2.5': 'I1', '3.2': 'I'}
 
 
 @dataclass(frozen=True)
@@ -22,7 +21,7 @@ class Tuning:
     start_omegas: tuple
     start_indices: list  # the index of each ω-rule start
     wall_time_s: float
-    best: dict  # run_episode's indices at the best gains (the scalar path)
+    best: dict  # the indices of the best gains, re-run as one episode
 
     @property
     def episodes_per_s(self) -> float:
@@ -31,15 +30,15 @@ class Tuning:
 
 def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEARCH_START_OMEGAS,
          seed: int = 0) -> Tuning:
-    """Minimise `index` from the ω-rule gains at each ω of `omegas`; the best gains are re-run by the scalar path."""
+    """Minimise `index` (I1, I2 or I) from the ω-rule gains at each ω of `omegas`; the best gains re-run alone."""
     start_kp, start_kv = omega_starts(template, omegas)
-    start_indices = [run_episode(with_gains(template, kp, kv)).indices[INDEX_KEYS[index]]
+    start_indices = [run_episode(with_gains(template, kp, kv)).indices()[index]
                      for kp, kv in zip(start_kp, start_kv)]
     started = time.perf_counter()
     result = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget,
                           method=method, seed=seed)
     wall = time.perf_counter() - started
-    best = run_episode(with_gains(template, result.kp, result.kv)).indices
+    best = run_episode(with_gains(template, result.kp, result.kv)).indices()
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, best)
 
 

@@ -1,0 +1,78 @@
+"""The options every `ddarm` command that runs episodes shares, and the EpisodeSpec they define."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ddarm.control.laws import CONTROLLERS
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, paper_trajectory
+from ddarm.physics.plant import DEFAULT_SUBSTEPS
+
+
+def finite(text: str) -> float:
+    value = float(text)
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a finite number')
+    return value
+
+
+def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
+    """The options that define an episode (MODEL.md's defaults); `gains` adds --omega / --kp --kv."""
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    parser.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES, default=1)
+    parser.add_argument('--duration', type=finite, default=1.0, metavar='T', help='T in s (default 1)')
+    parser.add_argument('--period', type=finite, default=0.01, metavar='DT',
+                        help='sampling period Δ in s (default 0.01)')
+    if gains:
+        choice = parser.add_mutually_exclusive_group(required=True)
+        choice.add_argument('--omega', type=finite, metavar='W',
+                            help='gains from the ω rule of section 2 (PD + gravity: m_ii at q_f)')
+        choice.add_argument('--kp', type=finite, nargs='+', metavar='K', help='K_p diagonal, one per joint')
+        parser.add_argument('--kv', type=finite, nargs='+', metavar='V', help='K_v diagonal, with --kp')
+    parser.add_argument('--delay', type=int, default=1, metavar='D',
+                        help='compute delay in samples (default 1; the paper uses 0 for PD + gravity)')
+    parser.add_argument('--tau', type=finite, default=0.0,
+                        help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
+    limits = parser.add_mutually_exclusive_group()
+    limits.add_argument('--limited', action='store_true',
+                        help="the paper's torque limits: 2 x max nominal torque per joint")
+    limits.add_argument('--torque-limit', type=finite, nargs='+', metavar='N',
+                        help='torque limits in N m, one per joint')
+    parser.add_argument('--external-torque', type=finite, nargs='+', metavar='PZ',
+                        help='constant external joint torques P^z in N m')
+    parser.add_argument('--viscous-friction', type=finite, nargs='+', metavar='B')
+    parser.add_argument('--coulomb-friction', type=finite, nargs='+', metavar='C')
+    parser.add_argument('--mass-scale', type=finite, nargs='+', metavar='S',
+                        help="plant link mass / model link mass, per link (default 1: model = plant)")
+    parser.add_argument('--substeps', type=int, default=DEFAULT_SUBSTEPS,
+                        help=f'RK4 steps per sampling period (default {DEFAULT_SUBSTEPS})')
+
+
+def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
+    if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
+        kp = kv = (1.0,) * len(paper_trajectory(args.trajectory, args.duration).q0)
+    elif args.omega is not None:
+        if args.kv is not None:
+            raise EpisodeError('--kv goes with --kp; --omega sets both gains from the ω rule')
+        final = paper_trajectory(args.trajectory, args.duration).qf
+        kp, kv = gains_from_omega(args.controller, args.omega, final_position=final)
+    else:
+        if args.kv is None:
+            raise EpisodeError('--kp needs --kv')
+        kp, kv = args.kp, args.kv
+    return EpisodeSpec(
+        controller=args.controller, kp=kp, kv=kv, trajectory=args.trajectory, duration=args.duration,
+        period=args.period, delay=args.delay, tau=args.tau,
+        torque_limit='paper' if args.limited else (args.torque_limit or 'none'),
+        external_torque=args.external_torque, viscous_friction=args.viscous_friction,
+        coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps)
+
+
+def add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--runs', default='runs', help='folder of run folders (runs)')
+    parser.add_argument('--run', metavar='NAME', help='run folder name (default: <command>-<law>-<time>)')
+    parser.add_argument('--out', metavar='FILE.yaml', help='also write the controller YAML here (new file)')
+    parser.add_argument('--json', action='store_true', help='print one JSON object')

@@ -1,0 +1,238 @@
+"""The report's four PNG figures. Drawn on the Agg canvas directly, so no pyplot state is touched."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+from ddarm.control.laws import CONTROLLERS
+from ddarm.paper.schema import Results
+from ddarm.paper.settings import Case, PaperSettings
+from ddarm.paper.tables import CONTROLLER_NAMES, case_text, number, paper_number, table4_cases
+from ddarm.recording.bags import BagEpisode
+
+COLOURS = {'pd_gravity': 'tab:blue', 'computed_torque': 'tab:red'}
+DPI = 120
+
+
+def _new_figure(width: float, height: float) -> Figure:
+    figure = Figure(figsize=(width, height), dpi=DPI)
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def _episode_series(bag: BagEpisode) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t_n, e_n in degrees, interval edges, applied torque) over the samples the bag holds before any divergence."""
+    k_max = len(bag.reference_times) - 1
+    samples = []
+    for n in range(k_max + 1):
+        if n not in bag.states or bag.states[n][0] is None:
+            break
+        samples.append(n)
+    times = bag.reference_times[samples]
+    errors = np.degrees(bag.q_ref[samples] - np.array([bag.states[n][0] for n in samples]))
+    applied = [n for n in samples if n + 1 in bag.states and bag.states[n + 1][2] is not None]
+    period = float(bag.episode['spec']['period'])
+    torque = np.array([bag.states[n + 1][2] for n in applied]).reshape(len(applied), len(bag.joints))
+    if not applied:
+        return times, errors, np.empty(0), torque
+    # A step plot draws a value over [edge_i, edge_i+1): the last held interval needs its end too.
+    edges = np.append(bag.reference_times[applied], (applied[-1] + 1) * period)
+    return times, errors, edges, np.vstack([torque, torque[-1:]])
+
+
+def _plain_log_ticks(axis) -> None:
+    """Ticks of a log axis at 1, 2, 5 × 10^k printed as plain numbers: the defaults print 3×10⁻¹ and collide."""
+    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FormatStrFormatter('%g'))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def tracking_figure(path: Path, episodes: dict, case: Case) -> None:
+    """Error and applied torque per joint over time, for each controller's (Table 4 row, bag) in `episodes`.
+
+    Joints are labelled by the names their bags recorded, so any arm the URDF describes is drawn."""
+    joints = next(iter(episodes.values()))[1].joints
+    figure = _new_figure(11, 2.6 * len(joints) + 1.0)
+    axes = figure.subplots(len(joints), 2, sharex=True, squeeze=False)
+    for controller, (row, bag) in episodes.items():
+        times, errors, edges, torque = _episode_series(bag)
+        diverged = len(times) < len(bag.reference_times)
+        label = (f'{CONTROLLER_NAMES[controller]} (delay d = {row.delay}): I1 = {number(row.I1)}, '
+                 f'I2 = {number(row.I2)}' + (f' (DIVERGED at t = {times[-1]:g} s)' if diverged else ''))
+        for j in range(len(joints)):
+            axes[j, 0].plot(times, errors[:, j], color=COLOURS[controller], label=label)
+            axes[j, 1].step(edges, torque[:, j], where='post', color=COLOURS[controller])
+    nominal = next(iter(episodes.values()))[1]  # one trajectory, so one nominal torque for both
+    for j, joint in enumerate(joints):
+        axes[j, 1].plot(nominal.reference_times, nominal.nominal[:, j], 'k--', linewidth=1.2)
+        axes[j, 0].axhline(0.0, color='0.6', linewidth=0.8)
+        axes[j, 0].set_ylabel(f'{joint}\nerror (deg)')
+        axes[j, 1].set_ylabel('torque (N m)')
+        for axis in axes[j]:
+            axis.grid(True, alpha=0.3)
+    axes[0, 0].set_title('tracking error $e = q^d - q$')
+    axes[0, 1].set_title('applied torque $P$ (held over each sampling period)')
+    axes[-1, 0].set_xlabel('time t (s)')
+    axes[-1, 1].set_xlabel('time t (s)')
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    handles.append(Line2D([], [], color='k', linestyle='--'))
+    labels.append('nominal torque $P^{nom}$ (open loop, no feedback)')
+    figure.suptitle(f'Table 4 optima of (3.2): {case_text(case.trajectory, case.T, case.period)}')
+    figure.legend(handles, labels, loc='upper center', ncol=2, bbox_to_anchor=(0.5, 0.965), frameon=False)
+    figure.tight_layout(rect=(0, 0, 1, 0.92))
+    figure.savefig(path)
+
+
+def _index_series(axis, rows: list) -> dict:
+    """Draw one panel's rows; returns the legend entries it drew, by label."""
+    drawn = {}
+    for controller in CONTROLLERS:
+        ours = sorted((row for row in rows if row.controller == controller), key=lambda row: row.tau)
+        if not ours:
+            continue
+        colour, name = COLOURS[controller], CONTROLLER_NAMES[controller]
+        values = np.array([np.nan if row.diverged else row.I1 for row in ours], dtype=float)
+        drawn[f'{name}, ours'], = axis.plot([row.tau for row in ours], values, '-o', color=colour, markersize=4)
+        paper = [(row.tau, row.paper) for row in ours if row.paper is not None]
+        if paper:
+            drawn[f'{name}, paper'], = axis.plot(*zip(*paper), 'o', markersize=8, markerfacecolor='none',
+                                                 markeredgecolor=colour, markeredgewidth=1.5)
+        over = [row for row in ours if not row.within_limits and not row.diverged]
+        if over:
+            drawn['torque reached the limit 2 max $|P^{nom}|$'], = axis.plot(
+                [row.tau for row in over], [row.I1 for row in over], 's', markersize=9,
+                markerfacecolor='none', markeredgecolor='k', markeredgewidth=0.8)
+    return drawn
+
+
+def _mark_diverged(axis, rows: list) -> dict:
+    """A cross at the top of the panel for each diverged episode: its partial index would mislead."""
+    diverged = [row for row in rows if row.diverged]
+    if not diverged:
+        return {}
+    top = axis.get_ylim()[1]
+    marks = {}
+    for controller in CONTROLLERS:
+        taus = [row.tau for row in diverged if row.controller == controller]
+        if taus:
+            marks['diverged (drawn at the top)'], = axis.plot(taus, [top] * len(taus), 'x', color=COLOURS[controller],
+                                                              markersize=10, markeredgewidth=2.5, clip_on=False)
+    axis.set_ylim(top=top)
+    return marks
+
+
+def index_vs_tau_figure(path: Path, results: Results, settings: PaperSettings) -> None:
+    """Index (2.5) against τ: Table 2 unlimited and limited and Table 3, ours as lines, the paper's hollow."""
+    panels = [('Table 2, gains for (2.5), torque unlimited', [row for row in results.table2 if not row.limited]),
+              ('Table 2, gains for (2.5), torque limited', [row for row in results.table2 if row.limited]),
+              ('Table 3, gains for (3.2), torque unlimited', results.table3)]
+    figure = _new_figure(14, 5.2)
+    axes = figure.subplots(1, 3, sharey=True)
+    legend = {}
+    for axis, (title, rows) in zip(axes, panels):
+        axis.set_yscale('log')
+        _plain_log_ticks(axis.yaxis)
+        legend.update(_index_series(axis, rows))
+        axis.set_title(title, fontsize=10)
+        axis.set_xlabel('initial disturbance τ (s)')
+        axis.grid(True, which='both', alpha=0.3)
+    for axis, (_, rows) in zip(axes, panels):  # once every panel is drawn: the shared top is final
+        legend.update(_mark_diverged(axis, rows))
+    axes[0].set_ylabel('index (2.5), I1 (deg)')
+    # Filled column by column: each controller's ours above its paper, then the markers' meanings.
+    labels = sorted(legend, key=lambda label: not label.endswith(('ours', 'paper')))
+    figure.legend([legend[label] for label in labels], labels, loc='lower center', ncol=3, frameon=False)
+    case = settings.case
+    figure.suptitle(r'Sensitivity to the initial velocity disturbance $\dot q(0) = -\dot q^d(\tau)$: '
+                    + case_text(case.trajectory, case.T, case.period))
+    figure.tight_layout(rect=(0, 0.12, 1, 1))
+    figure.savefig(path)
+
+
+def table4_figure(path: Path, results: Results) -> None:
+    """Table 4 as grouped bars: per case, each controller's I1 and I2 stacked, ours beside the paper's."""
+    cases = table4_cases(results)
+    rows = {(row.controller, row.trajectory, row.T, row.period): row for row in results.table4}
+    figure = _new_figure(13, 5.5)
+    axis = figure.subplots()
+    width = 0.2
+    bars = [(controller, source) for controller in CONTROLLERS for source in ('ours', 'paper')]
+    for c, case in enumerate(cases):
+        for k, (controller, source) in enumerate(bars):
+            row = rows.get((controller, *case))
+            if row is None or (source == 'paper' and row.paper is None):
+                continue
+            figures = row if source == 'ours' else row.paper
+            x = c + (k - 1.5) * width
+            axis.text(x, -0.01, source, ha='center', va='top', fontsize=8, transform=axis.get_xaxis_transform())
+            if source == 'ours' and (row.diverged or not np.isfinite([row.I1, row.I2]).all()):
+                axis.text(x, 0, 'diverged', ha='center', va='bottom', rotation=90, color=COLOURS[controller])
+                continue
+            style = {'hatch': '///', 'edgecolor': 'white', 'linewidth': 0} if source == 'paper' else {}
+            axis.bar(x, figures.I1, width * 0.95, color=COLOURS[controller], **style)
+            axis.bar(x, figures.I2, width * 0.95, bottom=figures.I1, color=COLOURS[controller], alpha=0.4, **style)
+            label = number(figures.I) if source == 'ours' else paper_number(figures.I)
+            axis.text(x, max(figures.I, figures.I1 + figures.I2), label, ha='center', va='bottom', fontsize=8)
+    axis.set_xticks(range(len(cases)),
+                    [f'trajectory {t}\nT = {T:g} s, Δ = {period:g} s' for t, T, period in cases])
+    axis.tick_params(axis='x', pad=16, length=0)
+    axis.set_ylim(0, axis.get_ylim()[1] * 1.08)  # room for the numbers on top
+    axis.set_ylabel('minimal index (3.2): I = I1 + I2')
+    axis.grid(True, axis='y', alpha=0.3)
+    handles = [Patch(color=COLOURS[controller], label=CONTROLLER_NAMES[controller]) for controller in CONTROLLERS]
+    handles += [Patch(color='0.3', label='I1, tracking (2.5)\n(lower part)'),
+                Patch(color='0.3', alpha=0.4, label='I2, torque deviation\n(upper part)'),
+                Patch(facecolor='0.5', hatch='///', edgecolor='white', linewidth=0, label='the paper (hatched)')]
+    axis.legend(handles=handles, loc='upper left', bbox_to_anchor=(1.01, 1), fontsize=9)
+    axis.set_title('Table 4: minimal (3.2), ours beside the paper (number on top: I)')
+    figure.tight_layout()
+    figure.savefig(path)
+
+
+def stability_figure(path: Path, results: Results, settings: PaperSettings) -> None:
+    """The largest stable ω of computed torque against Δ, with the paper's ω and its claimed Δ marked."""
+    rows = sorted(results.section2.stability, key=lambda row: row.period)
+    omega, claimed = settings.stability.omega, settings.stability.claimed_period
+    periods = [row.period for row in rows]
+    figure = _new_figure(8, 5)
+    axis = figure.subplots()
+    axis.set_xscale('log')
+    axis.set_yscale('log')
+    axis.plot(periods, [row.omega_max_stable for row in rows], '-', color='0.4',
+              label='largest stable ω (the boundary)')
+    for stable, marker, label in ((True, 'o', f'ω = {omega:g} stable at this Δ'),
+                                  (False, 'X', f'ω = {omega:g} unstable at this Δ')):
+        chosen = [row for row in rows if row.omega_15_stable == stable]
+        if chosen:
+            axis.plot([row.period for row in chosen], [row.omega_max_stable for row in chosen], marker,
+                      color='tab:green' if stable else 'tab:red', markersize=8, label=label)
+    for row in rows:
+        axis.annotate(number(row.omega_max_stable), (row.period, row.omega_max_stable),
+                      textcoords='offset points', xytext=(6, 6), fontsize=8)
+    axis.axhline(omega, color='k', linestyle='--', linewidth=1, label=f'ω = {omega:g} (the paper)')
+    axis.axvline(claimed, color='0.5', linestyle=':', linewidth=1, label=f'Δ = {claimed:g} s ({1 / claimed:g} Hz)')
+    # Ticks at the periods run, in plain numbers.
+    axis.set_xticks(periods, [f'{period:g}' for period in periods])
+    axis.xaxis.set_minor_formatter(NullFormatter())
+    _plain_log_ticks(axis.yaxis)
+    axis.margins(y=0.12)  # room for the value written above the highest point
+    axis.set_xlabel('sampling period Δ (s)')
+    axis.set_ylabel('ω (rad/s)')
+    top = axis.secondary_xaxis('top', functions=(lambda x: 1 / np.maximum(x, 1e-12),
+                                                 lambda x: 1 / np.maximum(x, 1e-12)))
+    top.set_xticks([1 / period for period in periods], [f'{1 / period:g}' for period in periods])
+    top.xaxis.set_minor_formatter(NullFormatter())
+    top.set_xlabel('sampling frequency 1/Δ (Hz)')
+    axis.grid(True, which='both', alpha=0.3)
+    axis.legend(fontsize=9)
+    axis.set_title(f"Computed torque, delay d = {settings.delays['computed_torque']}: stability against the "
+                   'sampling period', fontsize=10)
+    figure.tight_layout()
+    figure.savefig(path)

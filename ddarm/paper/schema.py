@@ -1,0 +1,217 @@
+"""results.json as typed data: what `ddarm reproduce` writes and the report reads (README.md lists the keys).
+
+One definition for both sides: ddarm.paper.experiments builds these objects and writes `to_json()`;
+the report takes `Results.from_json`, which refuses a missing or unknown key, a value of the wrong
+type, a law or index outside the vocabulary, or a row naming gains that are not there. A results.json
+of another version is refused by name rather than reported wrongly.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from ddarm.episodes.indices import INDICES
+from ddarm.errors import DdarmError
+from ddarm.paper import typed
+from ddarm.paper.settings import Controller, Table4Figures
+
+Index = Literal[INDICES]
+Vector = tuple[float, ...]
+
+
+class ResultsError(DdarmError, ValueError):
+    """Results that do not follow the schema; the text names the key."""
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    paper_delays: Mapping[Controller, int]
+    search_budget: int
+    cma_popsize: int
+    taus: Vector
+    start_omegas: Vector
+
+
+@dataclass(frozen=True)
+class Search:
+    episodes: int
+    wall_time_s: float
+    episodes_per_s: float
+    in_process_index: float
+    start_index: float  # the best ω-rule start's index
+    methods: tuple[str, ...]
+    best_method: str
+
+
+@dataclass(frozen=True)
+class GainSet:
+    """Gains optimised for `index` in one case; rows name it by `name`."""
+
+    name: str
+    controller: Controller
+    index: Index
+    trajectory: int
+    T: float
+    period: float
+    delay: int
+    kp: Vector
+    kv: Vector
+    search: Search
+
+
+@dataclass(frozen=True)
+class TauRow:
+    """A Table 2 or Table 3 cell: I1 at one τ; `paper` the paper's figure, None where it prints none."""
+
+    controller: Controller
+    tau: float
+    limited: bool
+    gains: str
+    I1: float
+    I2: float
+    I: float
+    diverged: bool
+    max_abs_torque: Vector
+    torque_limit: Vector  # the paper's, 2 max |P^nom|, whether or not the episode was limited
+    within_limits: bool
+    bag: str
+    paper: float | None
+
+
+@dataclass(frozen=True)
+class Table4Row:
+    controller: Controller
+    trajectory: int
+    T: float
+    period: float
+    delay: int
+    gains: str
+    kp: Vector
+    kv: Vector
+    I1: float
+    I2: float
+    I: float
+    diverged: bool
+    max_abs_torque: Vector
+    torque_limit: Vector
+    within_limits: bool
+    bag: str
+    paper: Table4Figures | None
+
+
+@dataclass(frozen=True)
+class OmegaRuleRow:
+    controller: Controller
+    omega: float
+    kp: Vector
+    kv: Vector
+    I1: float
+    I2: float
+    I: float
+    diverged: bool
+    max_abs_torque: Vector
+    torque_limit: Vector
+    within_limits: bool
+    bag: str
+
+
+@dataclass(frozen=True)
+class OmegaProcedureRow:
+    """Section 2's procedure for one law. When no ω passes, omega, kp and kv are None, and so is everything
+    after them: there was no episode (the defaults, for building the row before its episode runs)."""
+
+    controller: Controller
+    case: str
+    max_error_deg: float
+    omega_min: float
+    omega: float | None
+    kp: Vector | None
+    kv: Vector | None
+    I1: float | None = None
+    I2: float | None = None
+    I: float | None = None
+    bag: str | None = None
+    diverged: bool | None = None
+    max_abs_torque: Vector | None = None
+    torque_limit: Vector | None = None
+    within_limits: bool | None = None
+
+
+@dataclass(frozen=True)
+class StabilityRow:
+    """One Δ of the sampling claim; the `15` in the keys is the paper's ω (settings: stability.omega)."""
+
+    period: float
+    omega_max_stable: float
+    omega_15_stable: bool
+    I1_at_omega_15: float
+    diverged_at_omega_15: bool
+    bag: str
+
+
+@dataclass(frozen=True)
+class Section2:
+    omega_rules: list[OmegaRuleRow] = field(default_factory=list)
+    omega_procedure: list[OmegaProcedureRow] = field(default_factory=list)
+    stability: list[StabilityRow] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Claim:
+    claim: str
+    reproduced: bool
+    evidence: str
+
+
+@dataclass
+class Results:
+    """Every cell of the reproduction. Filled as the experiments run: not frozen, its lists grow, and
+    `claims` and `wall_time_s` come last."""
+
+    command: str
+    quick: bool
+    started: str
+    settings: RunSettings
+    gains: list[GainSet] = field(default_factory=list)
+    table2: list[TauRow] = field(default_factory=list)
+    table3: list[TauRow] = field(default_factory=list)
+    table4: list[Table4Row] = field(default_factory=list)
+    section2: Section2 = field(default_factory=Section2)
+    reconstruction: tuple[str, ...] = ()
+    claims: list[Claim] = field(default_factory=list)
+    wall_time_s: float | None = None
+
+    def to_json(self) -> dict:
+        return typed.write(self)
+
+    @classmethod
+    def from_json(cls, data, source: str = 'results') -> Results:
+        """`data` (results.json's object) as Results; ResultsError names `source` and the key refused."""
+        results = typed.read(cls, data, source, ResultsError)
+        names = [gains.name for gains in results.gains]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise ResultsError(f'{source}: gains[{i}].name {name!r} names two gain sets')
+        for part in ('table2', 'table3', 'table4'):
+            for i, row in enumerate(getattr(results, part)):
+                if row.gains not in names:
+                    raise ResultsError(f'{source}: {part}[{i}].gains names {row.gains!r}, which is not in '
+                                       'results.gains')
+        return results
+
+    @classmethod
+    def load(cls, path: Path | str) -> Results:
+        """results.json at `path`."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise ResultsError(f'{path}: cannot read the results: {error}') from error
+        return cls.from_json(data, str(path))
+
+    def gain_set(self, name: str) -> GainSet:
+        return next(gains for gains in self.gains if gains.name == name)

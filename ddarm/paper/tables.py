@@ -1,0 +1,279 @@
+"""The report's Markdown tables, ours beside the paper's, and how their numbers are written."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ddarm.control.laws import CONTROLLERS
+from ddarm.paper.schema import Results
+from ddarm.paper.settings import PaperSettings
+
+CONTROLLER_NAMES = {'pd_gravity': 'PD + gravity', 'computed_torque': 'computed torque'}
+
+
+def number(value, digits: int = 3) -> str:
+    """`digits` significant digits in fixed notation (exponent only beyond 1e6 or below 1e-4); '—' for None."""
+    if value is None:
+        return '—'
+    value = float(value)
+    if math.isnan(value):
+        return 'NaN'
+    if math.isinf(value):
+        return '∞' if value > 0 else '-∞'
+    if value == 0:
+        return '0'
+    # The magnitude after rounding, so that 0.09996 prints as 0.100, not 0.1000.
+    magnitude = math.floor(math.log10(abs(float(f'{value:.{digits - 1}e}'))))
+    if magnitude >= 6 or magnitude < -4:
+        return f'{value:.{digits - 1}e}'
+    return f'{value:.{max(0, digits - 1 - magnitude)}f}'
+
+
+def paper_number(value) -> str:
+    """The paper's figure as printed there (its own digits); '—' where it gives none."""
+    return '—' if value is None else f'{float(value):g}'
+
+
+def vector(values, digits: int = 4) -> str:
+    return '—' if values is None else '(' + ', '.join(number(v, digits) for v in values) + ')'
+
+
+def case_text(trajectory: int, duration: float, period: float) -> str:
+    return f'trajectory {trajectory}, T = {duration:g} s, Δ = {period:g} s'
+
+
+def sentence(text: str) -> str:
+    """`text` opening a sentence: only its first letter raised (str.capitalize would lower 'T' and 'Δ')."""
+    return text[:1].upper() + text[1:]
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table; a '|' inside a cell is escaped so that it cannot split the cell."""
+    def line(cells):
+        return '| ' + ' | '.join(str(text).replace('|', '\\|').replace('\n', ' ') for text in cells) + ' |'
+
+    return '\n'.join([line(header), '|' + '---|' * len(header), *(line(row) for row in rows)])
+
+
+class Cells:
+    """Our numbers as table cells, each a link to the bag it was scored from (a missing bag is flagged)."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = out
+
+    def link(self, text: str, bag: str | None) -> str:
+        if bag is None:
+            return text
+        if not (self.out / bag / 'metadata.yaml').is_file():
+            return f'{text} (**bag `{bag}` missing**)'
+        return f'[{text}]({bag})'
+
+    def index(self, row, key: str, digits: int = 3) -> str:
+        """The index `key` of `row` linked to row's bag; a diverged episode says so beside its (partial) figure."""
+        text = self.link(number(getattr(row, key), digits), row.bag)
+        return f'{text} **diverged**' if row.diverged else text
+
+
+def _peak_ratio(row) -> float:
+    """max_i max_j |P_i| / limit_i: 1 or more means the paper's torque limit was reached."""
+    return float(np.max(np.asarray(row.max_abs_torque, float) / np.asarray(row.torque_limit, float)))
+
+
+def _tau_key(row) -> float:
+    """τ as a table key: 0.1 * 3 and 0.3 are one row."""
+    return round(float(row.tau), 9)
+
+
+def table4_cases(results: Results) -> list[tuple]:
+    """Table 4's cases (trajectory, T, Δ) in the order they first appear."""
+    cases = []
+    for row in results.table4:
+        case = (row.trajectory, row.T, row.period)
+        if case not in cases:
+            cases.append(case)
+    return cases
+
+
+def _limit_cell(reached: bool, ratio: float) -> str:
+    return f'**yes** ({number(ratio)}×)' if reached else f'no ({number(ratio)}×)'
+
+
+def _by_tau(rows: list, *keys) -> dict:
+    return {(*(getattr(row, key) for key in keys), _tau_key(row)): row for row in rows}
+
+
+def _taus(rows: list) -> list:
+    return sorted({_tau_key(row) for row in rows})
+
+
+def _gain_lines(results: Results, rows: list) -> str:
+    used = sorted({row.gains for row in rows}, key=lambda name: (results.gain_set(name).controller, name))
+    lines = []
+    for name in used:
+        gains = results.gain_set(name)
+        lines.append(f'- {CONTROLLER_NAMES[gains.controller]} (`{name}`, delay d = {gains.delay}): '
+                     f'k_p = {vector(gains.kp)}, k_v = {vector(gains.kv)}')
+    return '\n'.join(lines)
+
+
+def table2(results: Results, cells: Cells, settings: PaperSettings) -> str:
+    rows = _by_tau(results.table2, 'controller', 'limited')
+    header = ['τ s']
+    for controller in CONTROLLERS:
+        name = CONTROLLER_NAMES[controller]
+        header += [f'{name} unlimited', 'paper', f'{name} limited', 'paper', 'limit reached (peak |P|/limit)']
+    body = []
+    for tau in _taus(results.table2):
+        line = [f'{tau:.2f}']
+        for controller in CONTROLLERS:
+            pair = [rows.get((controller, limited, tau)) for limited in (False, True)]
+            for row in pair:
+                line += ['not run', '—'] if row is None else [cells.index(row, 'I1'), paper_number(row.paper)]
+            present = [row for row in pair if row is not None]
+            line.append(_limit_cell(any(not row.within_limits for row in present), _peak_ratio(present[0]))
+                        if present else '—')
+        body.append(line)
+    case = sentence(case_text(settings.case.trajectory, settings.case.T, settings.case.period))
+    return f"""## Table 2: index (2.5) against the initial disturbance τ, gains optimised for (2.5)
+
+{case}; q̇(0) = -q̇^d(τ) (3.1). "limited": |P_i| ≤ 2 max |P_i^nom| enforced by
+the plant. "limit reached" is whether the applied torques reached that limit, with the unlimited episode's
+peak |P_i| / limit_i (the largest over the joints; the limited episode is the same until it first reaches
+the limit). The paper leaves its limited column blank for small τ. Each figure of ours links to its bag.
+
+{markdown_table(header, body)}
+
+Gains:
+{_gain_lines(results, results.table2)}
+"""
+
+
+def table3(results: Results, cells: Cells, settings: PaperSettings) -> str:
+    rows = _by_tau(results.table3, 'controller')
+    header = ['τ s']
+    for controller in CONTROLLERS:
+        header += [CONTROLLER_NAMES[controller], 'paper', 'within limits (peak |P|/limit)']
+    body = []
+    for tau in _taus(results.table3):
+        line = [f'{tau:.2f}']
+        for controller in CONTROLLERS:
+            row = rows.get((controller, tau))
+            if row is None:
+                line += ['not run', '—', '—']
+                continue
+            ratio = _peak_ratio(row)
+            within = f'yes ({number(ratio)}×)' if row.within_limits else f'**no** ({number(ratio)}×)'
+            line += [cells.index(row, 'I1'), paper_number(row.paper), within]
+        body.append(line)
+    case = sentence(case_text(settings.case.trajectory, settings.case.T, settings.case.period))
+    return f"""## Table 3: index (2.5) against τ, gains optimised for (3.2)
+
+{case}, torque unlimited. The paper: "the driving torques do not exceed their
+limiting values in any of the cases considered"; "within limits" checks that against 2 max |P_i^nom|.
+
+{markdown_table(header, body)}
+
+Gains:
+{_gain_lines(results, results.table3)}
+"""
+
+
+def table4(results: Results, cells: Cells) -> str:
+    header = ['case', 'controller', 'd', 'I', 'paper', 'I1', 'paper', 'I2', 'paper', 'k_p', 'k_v']
+    cases = table4_cases(results)
+    body = []
+    # As the paper: the two controllers of a case side by side.
+    for row in sorted(results.table4, key=lambda row: (cases.index((row.trajectory, row.T, row.period)),
+                                                       CONTROLLERS.index(row.controller))):
+        paper = [paper_number(None if row.paper is None else getattr(row.paper, key)) for key in ('I', 'I1', 'I2')]
+        body.append([case_text(row.trajectory, row.T, row.period), CONTROLLER_NAMES[row.controller],
+                     str(row.delay), cells.index(row, 'I'), paper[0], cells.index(row, 'I1'), paper[1],
+                     cells.index(row, 'I2'), paper[2], vector(row.kp), vector(row.kv)])
+    return f"""## Table 4: minimal (3.2), I = I1 + I2
+
+Gains optimised for (3.2) in each case, e(0) = 0, ė(0) = 0, torque unlimited. Each figure of ours links
+to its bag.
+
+{markdown_table(header, body)}
+"""
+
+
+def _undisturbed_row(results: Results, name: str):
+    """The tables' episode with gains `name` and no disturbance (τ = 0, torque unlimited), if any."""
+    rows = [row for row in results.table4 if row.gains == name]
+    rows += [row for part in (results.table2, results.table3) for row in part
+             if row.gains == name and _tau_key(row) == 0 and not row.limited]
+    return rows[0] if rows else None
+
+
+def gains(results: Results, cells: Cells) -> str:
+    header = ['gains', 'controller', 'index', 'case', 'd', 'k_p', 'k_v', 'start → optimum (in-process)',
+              'optimum from its bag', 'episodes', 'wall time s', 'episodes/s', 'methods']
+    body = []
+    for row in results.gains:
+        search = row.search
+        episode = _undisturbed_row(results, row.name)
+        scored = '—' if episode is None else cells.index(episode, row.index)
+        body.append([f'`{row.name}`', CONTROLLER_NAMES[row.controller], row.index,
+                     case_text(row.trajectory, row.T, row.period), str(row.delay), vector(row.kp), vector(row.kv),
+                     f'{number(search.start_index)} → {number(search.in_process_index)}', scored,
+                     str(search.episodes), number(search.wall_time_s), number(search.episodes_per_s),
+                     ', '.join(search.methods)])
+    return f"""## Optimised gains
+
+Every search ran in-process through the batch engine, from section 2's ω-rule gains ("start" is the best
+start's index). Beside its optimum, the same gains' index scored from the bag of their undisturbed ROS
+episode (τ = 0, torque unlimited, from Tables 2-4): the two should agree.
+
+{markdown_table(header, body)}
+"""
+
+
+def section2(results: Results, cells: Cells, settings: PaperSettings) -> str:
+    rules = [[CONTROLLER_NAMES[row.controller], number(row.omega), vector(row.kp), vector(row.kv),
+              cells.index(row, 'I1'), cells.index(row, 'I2'), cells.index(row, 'I')]
+             for row in results.section2.omega_rules]
+    procedure = []
+    for row in results.section2.omega_procedure:
+        ran = row.omega is not None
+        chosen = number(row.omega) if ran else 'none: even ω_min breaks the torque conditions'
+        indices = [cells.index(row, key) for key in ('I1', 'I2', 'I')] if ran else ['—'] * 3
+        procedure.append([CONTROLLER_NAMES[row.controller], row.case, number(row.max_error_deg),
+                          number(row.omega_min), chosen, vector(row.kp), vector(row.kv), *indices])
+    stability = []
+    for row in sorted(results.section2.stability, key=lambda row: row.period):
+        stable = 'yes' if row.omega_15_stable else '**no**'
+        episode = cells.link(number(row.I1_at_omega_15), row.bag)
+        if row.diverged_at_omega_15:
+            episode += ' **diverged**'
+        stability.append([f'{row.period:g}', f'{1 / row.period:g}', number(row.omega_max_stable), stable, episode])
+    case, omega, hertz = settings.case, settings.stability.omega, 1 / settings.stability.claimed_period
+    case_line = case_text(case.trajectory, case.T, case.period)
+    return f"""## Section 2: gains from simplified models
+
+### ω-rule gains
+
+Critically damped rules (MODEL.md 6): PD + gravity k_p = m_ii ω², k_v = 2 m_ii ω (m_ii at q_f);
+computed torque k_p = ω², k_v = 2ω. {sentence(case_line)}, the paper's delays.
+
+{markdown_table(['controller', 'ω rad/s', 'k_p', 'k_v', 'I1 (2.5)', 'I2', 'I (3.2)'], rules)}
+
+### The ω procedure
+
+The smallest ω whose steady-state errors are within the permitted error, then ω raised while the
+torques stay within their limits and do not grow excessively over the nominal ones.
+
+{markdown_table(['controller', 'case', 'permitted error °', 'ω_min', 'chosen ω', 'k_p', 'k_v', 'I1', 'I2', 'I'],
+                procedure)}
+
+### Stability of computed torque (delay d = {settings.delays['computed_torque']}) against the sampling period
+
+The paper: at {hertz:g} Hz and above, computed torque stays stable at ω = {omega:g}. The largest stable ω
+for each Δ, and the episode at ω = {omega:g} (trajectory {case.trajectory}, T = {case.T:g} s).
+
+{markdown_table(['Δ s', 'sampling Hz', 'largest stable ω rad/s', f'ω = {omega:g} stable', f'I1 at ω = {omega:g}'],
+                stability)}
+"""

@@ -1,0 +1,123 @@
+"""A node's life as an executable: its parameter files checked before rcl reads them, every refusal
+named in one line (exit 2), rclpy set up, the node run, and everything shut down whatever happens.
+
+The plant and controller nodes (`run_node`: spin until Ctrl-C, SIGTERM or shutdown, exit 0) and
+the tuner node (a sweep with exit codes of its own) share this flow through `run_executable`.
+"""
+
+from __future__ import annotations
+
+import sys
+import weakref
+from collections.abc import Callable, Sequence
+
+from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
+
+REFUSED = 2  # the exit code of a node that refused to start
+# The arguments each context was initialised with by `run_executable` (rclpy keeps no public copy).
+_ARGUMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def context_arguments(context) -> list[str]:
+    """The command line an rclpy context was initialised with, as far as ddarm knows it.
+
+    The arguments `run_executable` gave rclpy.init; for the default context otherwise the
+    process's own (what rclpy.init reads when given none); for another context, none.
+    """
+    import rclpy
+
+    if context in _ARGUMENTS:
+        return _ARGUMENTS[context]
+    return list(sys.argv) if context is rclpy.get_default_context() else []
+
+
+def parameter_file_refusal(parameter_files: dict, name: str) -> ParameterFileError | None:
+    """Why a node named `name` got none of its parameter files' values, if it did not."""
+    import rclpy
+
+    # A bare node under the same remapping rules tells the name the refused one would have had.
+    stand_in = rclpy.create_node(name, enable_rosout=False)
+    try:
+        refuse_unconfigured(parameter_files, stand_in.get_fully_qualified_name())
+    except ParameterFileError as error:
+        return error
+    finally:
+        stand_in.destroy_node()
+    return None
+
+
+def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequence[str] | None,
+                   run: Callable[..., int], *, out=None, signal_handler_options=None, follow: bool = True) -> int:
+    """Start the node `make_node` builds (named `name`), hand it to `run`, and return `run`'s exit code.
+
+    Refused with exit 2, in one line on `out` (stdout by default): a parameter file that cannot
+    be read or configures no node (checked before rcl reads it, so the words name the file),
+    arguments rcl refuses, and an exception in `refusals` (or a parameter exception) while the
+    node is built; a node refused on its defaults names the file meant for another node as the
+    cause. `follow`: end with the ddarm process that started this one (`ddarm.ros.lifetime`).
+    `signal_handler_options` goes to rclpy.init (None: rclpy's own handlers).
+    """
+    import rclpy
+    from rclpy.exceptions import ParameterException
+
+    def refuse(error) -> int:
+        print(f'{name}: refused to start: {error}', file=out, flush=True)
+        return REFUSED
+
+    if follow:
+        from ddarm.ros.lifetime import follow_parent
+
+        follow_parent()
+    try:
+        # Read before rcl does, so that a file it cannot parse is refused in our words, naming it.
+        parameter_files = read_parameter_files(sys.argv if args is None else args)
+    except ParameterFileError as error:
+        return refuse(error)
+    arguments = list(sys.argv if args is None else args)
+    try:
+        rclpy.init(args=arguments, signal_handler_options=signal_handler_options)
+    except RuntimeError as error:  # rclpy's errors of rcl (unknown arguments, a file it cannot parse)
+        return refuse(f'rcl refused the arguments: {error}')
+    context = rclpy.get_default_context()
+    _ARGUMENTS[context] = arguments
+    node = None
+    try:
+        try:
+            node = make_node()
+            refuse_unconfigured(parameter_files, node.get_fully_qualified_name())
+        except (*refusals, ParameterException, ParameterFileError) as error:
+            if node is None and parameter_files:
+                # Refused on defaults (a controller without gains, say): a file for another node is the cause.
+                error = parameter_file_refusal(parameter_files, name) or error
+            return refuse(error)
+        return run(node)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        _ARGUMENTS.pop(context, None)
+
+
+def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
+    """A node's whole life as an executable: 0 after a normal end (Ctrl-C, SIGTERM, shutdown), 2 if refused.
+
+    `make_node` builds the node named `name` after rclpy.init; an exception in `refusals` while it
+    does (a bad parameter file, say) is printed as the reason the node refused to start, as is a
+    parameter file that rcl cannot parse or that configures no node of this name.
+    """
+    import rclpy
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException
+
+    def spin(node) -> int:
+        try:
+            rclpy.spin(node)
+        except (*refusals, ParameterException, ParameterFileError) as error:
+            print(f'{name}: refused to start: {error}', flush=True)
+            return REFUSED
+        return 0
+
+    try:
+        return run_executable(name, make_node, refusals, args, spin)
+    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C or SIGTERM (rclpy's handlers), or shutdown
+        return 0

@@ -1,0 +1,182 @@
+"""A graph session: the plant and a controller as node processes in a namespace of their own, a driver
+in this process, and the episodes run (and recorded, and scored from their bags) through them."""
+
+from __future__ import annotations
+
+import os
+import secrets
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+
+from ddarm.control.laws import CONTROLLERS
+from ddarm.ros.driver import GraphDriver, GraphEpisodeError
+from ddarm.ros.lifetime import child_environment
+from ddarm.ros.names import fully_qualified, namespace_arguments
+from ddarm.ros.node_parameters import COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, episode_record
+from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
+from ddarm.episodes.engine import warm_up
+from ddarm.episodes.result import Episodes
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
+
+
+def session_namespace() -> str:
+    """A namespace no other graph on this machine or network uses.
+
+    A namespace per session is how ROS runs several robots on one domain: every topic and
+    service of the session is its own, and the domain (which the user chose) stays as it is.
+    """
+    return f'/ddarm_{os.getpid()}_{secrets.token_hex(4)}'
+
+
+class GraphSession:
+    """The plant and a controller as separate processes over DDS, with a driver in this process.
+
+    The session's nodes live in a namespace of their own (`session_namespace`), so two sessions,
+    or a session and a user's graph, on one domain never hear each other. The node processes live
+    as long as the session, so episodes cost no start-up, and no longer: they end when it closes
+    and, should this process be killed, with it (`ddarm.ros.lifetime`). Switching controller
+    stops the other law's process, because two laws would answer the same states.
+    """
+
+    def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
+        self._temporary = tempfile.TemporaryDirectory(prefix='ddarm-graph-') if folder is None else None
+        self.folder = Path(folder if folder is not None else self._temporary.name)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.timeout = timeout
+        self.namespace = session_namespace()
+        self.processes: dict[str, subprocess.Popen] = {}
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
+        self.driver = GraphDriver(namespace=self.namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.driver)
+        try:
+            # The nodes run the compiled loop: built (or loaded from numba's cache) here first, so that
+            # on a fresh checkout the node processes load it instead of compiling it past their peer timeout.
+            warm_up()
+            self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
+                                                       'command_timeout': COMMAND_TIMEOUT})
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self, name: str, module: list[str], parameters: dict) -> None:
+        path = self.folder / f'{name}.parameters.yaml'
+        path.write_text(yaml.safe_dump({fully_qualified(name, self.namespace): {'ros__parameters': parameters}}))
+        with open(self.folder / f'{name}.log', 'w') as log:
+            # A session of its own: a Ctrl-C in the terminal reaches this process, which stops its nodes in order.
+            self.processes[name] = subprocess.Popen(
+                [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
+                 '--params-file', str(path)],
+                stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
+
+    def use_controller(self, law: str, spec: EpisodeSpec) -> None:
+        """Start the `law` controller process (stopping the other law's) unless it runs already."""
+        for other in CONTROLLERS:
+            if other != law and other in self.processes:
+                self._stop(other)
+        if law not in self.processes:
+            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)})
+
+    def check_alive(self) -> None:
+        for name, process in self.processes.items():
+            if process.poll() is not None:
+                tail = (self.folder / f'{name}.log').read_text()[-2000:]
+                raise GraphEpisodeError(f'the {name} node ({fully_qualified(name, self.namespace)}) exited with '
+                                        f'code {process.returncode}:\n{tail}')
+
+    def ready(self, spec: EpisodeSpec) -> None:
+        """The `spec` law's controller running and both nodes on the graph, alone."""
+        self.use_controller(spec.controller, spec)
+        self.driver.wait_for_peers(self.executor, spec.controller, alive=self.check_alive)
+
+    def open_bag(self, path: Path | str, spec: EpisodeSpec, plan: EpisodePlan, transport: str, storage: str,
+                 command: str | None) -> EpisodeBagWriter:
+        """A bag for the next episode of `spec`, once its nodes are up (the bag records what they offer)."""
+        self.ready(spec)
+        return self.driver.open_bag(path, episode_record(spec, plan, transport, command), storage)
+
+    def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
+            realtime: bool = False) -> Episodes:
+        self.use_controller(spec.controller, spec)
+        return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
+                                       self.timeout, alive=self.check_alive)
+
+    def record_and_score(self, spec: EpisodeSpec, bag: Path, command: str | None = None, storage: str = 'mcap'
+                         ) -> tuple[Episodes, dict]:
+        """`record_and_score` on this session: run `spec` in lockstep, record it at `bag`, score the bag."""
+        return record_and_score(self, spec, bag, storage=storage, command=command)
+
+    def _stop(self, name: str) -> None:
+        process = self.processes.pop(name)
+        if process.poll() is None:
+            process.send_signal(subprocess.signal.SIGINT)
+            try:
+                process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+    def close(self) -> None:
+        for name in list(self.processes):
+            self._stop(name)
+        self.executor.shutdown()
+        self.driver.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        if self._temporary is not None:
+            self._temporary.cleanup()
+
+    def __enter__(self) -> GraphSession:
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if error is None:
+            self.close()
+            return
+        try:  # a failure to stop cleanly must not hide why the session ended
+            self.close()
+        except Exception as cleanup:
+            error.add_note(f'while closing the graph session: {type(cleanup).__name__}: {cleanup}')
+
+
+def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storage: str = 'mcap',
+                     command: str | None = None) -> tuple[Episodes, dict]:
+    """Run `spec` through the graph in lockstep, record it at `bag`, and score it from the bag alone.
+
+    Returns what the driver heard and the bag's score (the JSON of `ddarm score`); the bag is
+    closed and marked complete or incomplete whatever happens.
+    """
+    from ddarm.recording.bags import score_bag
+
+    plan = check_episode(spec)
+    with session.open_bag(bag, spec, plan, 'ros-lockstep', storage, command) as writer:
+        result = session.run(spec, plan, writer)
+        writer.close(complete=True)
+    return result, score_bag(bag)
+
+
+def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
+                      bag: Path | str | None = None, storage: str = 'mcap', command: str | None = None,
+                      ) -> Episodes:
+    """Run `spec` through plant and controller processes over DDS and score what the driver recorded.
+
+    With `bag`, the episode is also recorded there; the bag is closed (and marked complete or
+    incomplete) whatever happens, so a killed or failed run never passes for a good one.
+    """
+    plan = check_episode(spec)
+    if bag is not None:
+        checked_output_path(bag)  # refused before any node starts
+    transport = 'ros-realtime' if realtime else 'ros-lockstep'
+    with GraphSession(timeout=timeout) as session:
+        if bag is None:
+            return session.run(spec, plan, realtime=realtime)
+        with session.open_bag(bag, spec, plan, transport, storage, command) as writer:
+            result = session.run(spec, plan, writer, realtime)
+            writer.close(complete=True)
+        return result

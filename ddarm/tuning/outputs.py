@@ -1,0 +1,109 @@
+"""What `ddarm omega` and `ddarm tune` leave behind: the run folder, its report, and the controller YAML,
+written only when the evidence supports the gains. No ROS: the graph episode that checks tuned gains is
+run by the caller, which hands over the scores of its bag."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ddarm.episodes.spec import EpisodeSpec
+from ddarm.recording.bags import BagError, checked_output_path
+from ddarm.recording.runs import RunFolder, controller_yaml
+
+# The indices the in-process search and the bag's scores are compared on, and how far they may differ
+# (relative) for the bag to confirm the search.
+COMPARED_INDICES = ('I1', 'I2', 'I')
+AGREEMENT = 1e-9
+
+
+def check_outputs(out: str | None, runs: str, run: str | None) -> None:
+    """Refuse an `out` YAML or run folder that cannot be written as asked, before any search or episode."""
+    if out:
+        path = checked_output_path(out)
+        if not path.parent.is_dir():
+            raise BagError(f'--out {path}: the folder {path.parent} does not exist')
+    if run:
+        RunFolder.checked_path(run, Path(runs))
+    else:
+        RunFolder.checked_root(Path(runs))
+
+
+def run_folder(kind: str, controller: str, runs: str, run: str | None, command: str) -> RunFolder:
+    """The run folder `run` under `runs`, or <kind>-<controller>-<time> when not named."""
+    name = run or time.strftime(f'{kind}-{controller}-%Y%m%d-%H%M%S')
+    return RunFolder(name, runs, command=command)
+
+
+def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out: str | None = None) -> list[str]:
+    """The controller YAML in the run folder, and at `out` if given (never overwriting)."""
+    text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance)
+    written = [str(run.write_text(f'{spec.controller}.yaml', text))]
+    if out:
+        checked_output_path(out).write_text(text)
+        written.append(out)
+    return written
+
+
+def finish_omega(run: RunFolder, spec: EpisodeSpec, choice, out: str | None = None) -> dict:
+    """Section 2's procedure done: its report in the run's summary, the gains written if an ω was chosen.
+
+    Returns the report (the JSON of `ddarm omega`).
+    """
+    steps = [dataclasses.asdict(step) for step in choice.steps]
+    report = {'omega_min': choice.omega_min,
+              'steady_state_error_at_omega_min_deg': np.degrees(choice.steady_state_error_at_min).tolist(),
+              'omega': choice.omega, 'kp': None if choice.kp is None else choice.kp.tolist(),
+              'kv': None if choice.kv is None else choice.kv.tolist(),
+              'indices': choice.steps[-2 if not choice.steps[-1].accepted else -1].indices
+              if choice.omega is not None else None,
+              'steps': steps, 'spec': spec.to_dict(), 'command': run.summary['command']}
+    if choice.omega is not None:
+        report['gains_files'] = write_gains(run, choice.kp, choice.kv, spec,
+                                            f"ω = {choice.omega} from: {report['command']}", out)
+    run.summary['omega'] = report
+    run.finish('complete' if choice.omega is not None else 'no omega meets the torque conditions')
+    report['run'] = str(run.path)
+    return report
+
+
+def relative_difference(in_process: dict, from_bag: dict) -> float:
+    """The largest relative difference of the compared indices between the in-process run and the bag."""
+    return max(abs(from_bag[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in COMPARED_INDICES)
+
+
+def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec, tuning, scored: dict, *,
+                  index: str, method: str, seed: int, out: str | None = None) -> dict:
+    """A search for `index` (I1, I2 or I) done, and its best gains' episode scored from its bag (`scored`):
+    the report in the run's summary.
+
+    The gains are written only if the bag agrees with the in-process indices: gains whose evidence
+    disagrees with the search are not handed to a robot. Returns the report (the JSON of `ddarm
+    tune`); its `agree` says whether the bag confirmed the search.
+    """
+    in_process = tuning.best
+    difference = relative_difference(in_process, scored)
+    report = {
+        'controller': template.controller, 'index': index, 'method': method, 'seed': seed,
+        'kp': tuning.search.kp.tolist(), 'kv': tuning.search.kv.tolist(),
+        'search_index': tuning.search.index, 'in_process': in_process,
+        'from_bag': {k: scored[k] for k in COMPARED_INDICES}, 'max_rel_difference': difference,
+        'agree': difference <= AGREEMENT, 'bag': scored['bag'],
+        'start_omegas': list(tuning.start_omegas), 'start_indices': tuning.start_indices,
+        'episodes': tuning.search.episodes, 'batches': tuning.search.batches,
+        'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
+        'spec': best_spec.to_dict(), 'command': run.summary['command'],
+    }
+    if report['agree']:
+        report['gains_files'] = write_gains(
+            run, tuning.search.kp, tuning.search.kv, best_spec,
+            f"{index} = {scored[index]!r} (scored from {scored['bag']})\nfrom: {report['command']}", out)
+    else:
+        report['gains_files'] = []
+    run.summary['tune'] = report
+    run.finish('complete' if report['agree'] else 'in-process and bag indices disagree')
+    report['run'] = str(run.path)
+    return report

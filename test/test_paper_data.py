@@ -1,0 +1,300 @@
+"""The paper as data: settings.yaml holds what the code held before, frozen; bad settings and results.json
+that does not follow the schema are refused naming the file and the key; the claims are judged from typed
+results; the experiments score through any recorder and need no ROS."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ddarm.paper.claims import judge_claims
+from ddarm.paper.schema import Claim, GainSet, OmegaProcedureRow, Results, ResultsError, StabilityRow, TauRow
+from ddarm.paper.settings import SETTINGS_PATH, Budget, Case, SettingsError, load_settings, paper_settings
+
+ROOT = Path(__file__).resolve().parent.parent
+CONTROLLERS = ('pd_gravity', 'computed_torque')
+
+# What ddarm/paper/experiments.py held before the settings were data (MODEL.md section 10).
+TAUS = tuple(round(0.01 * i, 2) for i in range(11))
+TABLE2 = {
+    ('pd_gravity', False): (0.086, 0.089, 0.095, 0.107, 0.106, 0.113, 0.122, 0.129, 0.138, 0.149, 0.156),
+    ('pd_gravity', True): (None, None, None, None, 0.772, 0.628, 2.04, 3.32, 3.96, 4.92, 5.57),
+    ('computed_torque', False): (0.046, 0.073, 0.12, 0.16, 0.21, 0.255, 0.301, 0.384, 0.396, 0.443, 0.491),
+    ('computed_torque', True): (None, None, None, None, None, None, 1.60, 1.95, 1.90, 1.67, 2.01),
+}
+TABLE3 = {
+    'pd_gravity': (0.274, 0.276, 0.278, 0.278, 0.280, 0.283, 0.285, 0.281, 0.292, 0.296, 0.303),
+    'computed_torque': (0.072, 0.083, 0.093, 0.109, 0.122, 0.135, 0.148, 0.144, 0.177, 0.195, 0.215),
+}
+TABLE4 = {
+    ('pd_gravity', 1, 1.0, 0.01): (1.07, 0.27, 0.80), ('computed_torque', 1, 1.0, 0.01): (0.30, 0.07, 0.23),
+    ('pd_gravity', 1, 1.0, 0.02): (2.6, 0.64, 1.96), ('computed_torque', 1, 1.0, 0.02): (1.18, 0.53, 0.66),
+    ('pd_gravity', 1, 0.5, 0.01): (4.4, 0.76, 3.6), ('computed_torque', 1, 0.5, 0.01): (1.6, 0.63, 1.03),
+    ('pd_gravity', 2, 1.0, 0.01): (3.3, 0.96, 2.3), ('computed_torque', 2, 1.0, 0.01): (0.62, 0.17, 0.45),
+}
+TABLE4_CASES = ((1, 1.0, 0.01), (1, 1.0, 0.02), (1, 0.5, 0.01), (2, 1.0, 0.01))
+OMEGA_PROCEDURE_CASES = {
+    'computed_torque': ('external torque P^z = (0, 20, 5) N m', dict(external_torque=(0.0, 20.0, 5.0)), 0.5),
+    'pd_gravity': ('links 2 and 3 10 % heavier than the model', dict(mass_scale=(1.0, 1.1, 1.1)), 1.0),
+}
+
+
+# Settings ----------------------------------------------------------------------------------
+
+def test_the_settings_hold_what_the_code_held():
+    settings = paper_settings()
+    assert dict(settings.delays) == {'pd_gravity': 0, 'computed_torque': 1}
+    assert settings.taus == TAUS and settings.case == Case(1, 1.0, 0.01) == settings.tracking_case
+    for (controller, limited), figures in TABLE2.items():
+        assert [settings.table2_figure(controller, limited, tau) for tau in TAUS] == list(figures)
+    for controller, figures in TABLE3.items():
+        assert [settings.table3_figure(controller, tau) for tau in TAUS] == list(figures)
+    assert [(case.trajectory, case.T, case.period) for case in settings.table4_cases] == list(TABLE4_CASES)
+    for (controller, *case), (index, first, second) in TABLE4.items():
+        figures = settings.table4_figures(controller, Case(*case))
+        assert (figures.I, figures.I1, figures.I2) == (index, first, second)
+    assert dict(settings.omega_rules) == {'computed_torque': 15.0, 'pd_gravity': 10.0}
+    for controller, (case, disturbance, max_error) in OMEGA_PROCEDURE_CASES.items():
+        procedure = settings.omega_procedure[controller]
+        assert (procedure.case, dict(procedure.disturbance), procedure.max_error_deg) == (case, disturbance, max_error)
+    assert settings.stability.periods == (0.005, 0.01, 0.02, 0.025, 0.04, 0.05)
+    assert (settings.stability.omega, settings.stability.claimed_period) == (15.0, 0.01)
+    assert Budget.full() == Budget(search_episodes=4000, cma_popsize=64, taus=TAUS)
+    assert Budget.quick() == Budget(search_episodes=400, cma_popsize=16, taus=(0.0, 0.05, 0.1))
+    assert len(settings.reconstruction) == 8
+    assert settings.reconstruction[1].startswith("Trajectory 1 starts at q = (0, π/3, -2π/3), the end at (1, 0, 0) "
+                                                 "(MODEL.md 4); the paper's Fig. 4 is lost. Trajectory 2")
+
+
+def test_the_settings_are_frozen_all_the_way_down():
+    settings = paper_settings()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.taus = ()
+    with pytest.raises(TypeError):
+        settings.delays['pd_gravity'] = 1
+    with pytest.raises(TypeError):
+        settings.omega_procedure['pd_gravity'].disturbance['mass_scale'] = (1.0,) * 3
+
+
+def _edit(document: dict, key: str, value) -> None:
+    """Set (or, for value ..., delete) `key`, a dotted path with [i] for list items."""
+    *parents, last = key.replace('[', '.[').split('.')
+    for part in parents:
+        document = document[int(part[1:-1])] if part.startswith('[') else document[part]
+    if value is ...:
+        del document[last]
+    else:
+        document[int(last[1:-1]) if last.startswith('[') else last] = value
+
+
+@pytest.mark.parametrize('key, value, named', [
+    ('table2.pd_gravity.limited', ..., "missing key 'table2.pd_gravity.limited'"),
+    ('budgets.full.threads', 2, "unknown key 'budgets.full.threads'"),
+    ('delays.pd_gravity', 'zero', 'delays.pd_gravity must be int'),
+    ('delays.computed_torque', ..., "missing key 'delays.computed_torque'"),
+    ('delays.pid', 2, 'delays.pid (a key) must be one of'),
+    ('stability.omega', True, 'stability.omega must be a number'),
+    ('taus', 0.1, 'taus must be a list'),
+    ('table2.pd_gravity.unlimited', [0.086] * 10, 'table2.pd_gravity.unlimited has 10 figures for the 11 taus'),
+    ('table3.computed_torque', [0.072] * 12, 'table3.computed_torque has 12 figures'),
+    ('budgets.quick.taus', [0.0, 0.055], 'budgets.quick.taus [0.055]'),
+    ('case.trajectory', 3, 'case.trajectory must be one of [1, 2], got 3'),
+    ('case.period', 0.005, 'case Case(trajectory=1, T=1.0, period=0.005) must be one of the table4 cases'),
+    ('tracking_case.T', 2.0, 'tracking_case Case(trajectory=1, T=2.0, period=0.01) must be one of the table4'),
+    ('table4[3].case.trajectory', 7, 'table4[3].case.trajectory must be one of [1, 2]'),
+    ('table4[1].paper.computed_torque.I2', ..., "missing key 'table4[1].paper.computed_torque.I2'"),
+    ('table4[2].paper.pd_gravity', ..., "missing key 'table4[2].paper.pd_gravity'"),
+    ('omega_procedure.pd_gravity.disturbance.mass_scale', [1.0, 1.1],
+     'omega_procedure.pd_gravity.disturbance.mass_scale has 2 values for the 3 joints'),
+    ('omega_procedure.pd_gravity.disturbance.friction', [0.0] * 3,
+     "omega_procedure.pd_gravity.disturbance.friction (a key) must be one of ('external_torque', 'mass_scale')"),
+    ('reconstruction[2]', 7, 'reconstruction[2] must be str'),
+])
+def test_bad_settings_are_refused_naming_the_file_and_the_key(tmp_path, key, value, named):
+    document = yaml.safe_load(SETTINGS_PATH.read_text())
+    _edit(document, key, value)
+    path = tmp_path / 'settings.yaml'
+    path.write_text(yaml.safe_dump(document, allow_unicode=True))
+    with pytest.raises(SettingsError) as refused:
+        load_settings(path)
+    assert str(refused.value).startswith(f'{path}: ') and named in str(refused.value), str(refused.value)
+
+
+def test_a_settings_key_given_twice_is_refused(tmp_path):
+    path = tmp_path / 'settings.yaml'
+    path.write_text(SETTINGS_PATH.read_text() + '\ndelays: {pd_gravity: 1, computed_torque: 1}\n')
+    with pytest.raises(SettingsError, match="duplicate key 'delays'"):
+        load_settings(path)
+
+
+def test_the_settings_file_as_written_loads_as_the_default():
+    assert load_settings(SETTINGS_PATH) == paper_settings()
+
+
+# The results schema ------------------------------------------------------------------------
+
+def _episode(i1: float, within: bool = True, bag: str = 'bags/x') -> dict:
+    return {'I1': i1, 'I2': 1.0, 'I': i1 + 1.0, 'diverged': False, 'max_abs_torque': [1.0, 2.0, 3.0],
+            'torque_limit': [2.0, 4.0, 6.0] if within else [2.0, 1.0, 6.0], 'within_limits': within, 'bag': bag}
+
+
+def results_json() -> dict:
+    """A results.json in the schema, every part present, with numbers the claims can be judged from."""
+    gains = [{'name': f'{controller}-{index}-traj{t}-T{d:g}-dt{p:g}', 'controller': controller, 'index': index,
+              'trajectory': t, 'T': d, 'period': p, 'delay': delay, 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
+              'search': {'episodes': 30, 'wall_time_s': 0.5, 'episodes_per_s': 60.0, 'in_process_index': 0.1,
+                         'start_index': float('inf'), 'methods': ['nelder-mead', 'cma'], 'best_method': 'cma'}}
+             for controller, delay in (('pd_gravity', 0), ('computed_torque', 1))
+             for index, cases in (('I1', TABLE4_CASES[:1]), ('I', TABLE4_CASES)) for t, d, p in cases]
+    # PD + gravity: I1 grows 2x with τ, 4x when limited; computed torque: 3x, 1.1x limited; Table 3: 1.5x.
+    table2 = [{'controller': controller, 'tau': tau, 'limited': limited,
+               'gains': f'{controller}-I1-traj1-T1-dt0.01',
+               **_episode(base * (1 + (growth - 1) * tau / 0.1) * (factor if limited and tau else 1.0)),
+               'paper': TABLE2[(controller, limited)][TAUS.index(tau)]}
+              for controller, base, growth, factor in (('pd_gravity', 0.1, 2.0, 4.0),
+                                                       ('computed_torque', 0.05, 3.0, 1.1))
+              for limited in (False, True) for tau in (0.0, 0.1)]
+    table3 = [{'controller': controller, 'tau': tau, 'limited': False, 'gains': f'{controller}-I-traj1-T1-dt0.01',
+               **_episode(0.3 * (1.5 if tau else 1.0), within=tau == 0.0), 'paper': TABLE3[controller][TAUS.index(tau)]}
+              for controller in CONTROLLERS for tau in (0.0, 0.1)]
+    table4 = [{'controller': controller, 'trajectory': t, 'T': d, 'period': p, 'delay': delay,
+               'gains': f'{controller}-I-traj{t}-T{d:g}-dt{p:g}', 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
+               **_episode(i1), 'paper': dict(zip(('I', 'I1', 'I2'), TABLE4[(controller, t, d, p)]))}
+              for t, d, p in TABLE4_CASES
+              for controller, delay, i1 in (('pd_gravity', 0, 0.6), ('computed_torque', 1, 0.2))]
+    section2 = {
+        'omega_rules': [{'controller': 'computed_torque', 'omega': 15.0, 'kp': [225.0] * 3, 'kv': [30.0] * 3,
+                         **_episode(0.4)}],
+        'omega_procedure': [{'controller': 'pd_gravity', 'case': 'heavier', 'max_error_deg': 1.0, 'omega_min': 9.0,
+                             'omega': None, 'kp': None, 'kv': None, 'I1': None, 'I2': None, 'I': None, 'bag': None,
+                             'diverged': None, 'max_abs_torque': None, 'torque_limit': None, 'within_limits': None}],
+        'stability': [{'period': period, 'omega_max_stable': 0.426 / period, 'omega_15_stable': 0.426 / period > 15,
+                       'I1_at_omega_15': 43 * period, 'diverged_at_omega_15': False, 'bag': 'bags/s'}
+                      for period in (0.005, 0.01, 0.05)],
+    }
+    return {'command': 'ddarm reproduce --quick', 'quick': True, 'started': '2026-12-01T09:36:23+0000',
+            'settings': {'paper_delays': {'pd_gravity': 0, 'computed_torque': 1}, 'search_budget': 30,
+                         'cma_popsize': 16, 'taus': [0.0, 0.1], 'start_omegas': [8.0, 15.0]},
+            'gains': gains, 'table2': table2, 'table3': table3, 'table4': table4, 'section2': section2,
+            'reconstruction': ['a note'], 'claims': [{'claim': 'c', 'reproduced': True, 'evidence': 'e'}],
+            'wall_time_s': 12.5}
+
+
+def test_results_json_reads_and_writes_back_key_for_key_in_order():
+    data = results_json()
+    results = Results.from_json(data)
+    assert isinstance(results.table2[0], TauRow) and isinstance(results.gains[0], GainSet)
+    assert results.section2.omega_procedure[0] == OmegaProcedureRow('pd_gravity', 'heavier', 1.0, 9.0, None, None, None)
+    assert json.dumps(results.to_json()) == json.dumps(data)
+    assert Results.from_json(json.loads(json.dumps(results.to_json()))) == results
+
+
+def test_the_schema_has_the_documented_keys():
+    fields = {kind: [field.name for field in dataclasses.fields(kind)]
+              for kind in (Results, GainSet, TauRow, StabilityRow, Claim)}
+    assert fields[Results] == ['command', 'quick', 'started', 'settings', 'gains', 'table2', 'table3', 'table4',
+                               'section2', 'reconstruction', 'claims', 'wall_time_s']
+    assert fields[TauRow] == ['controller', 'tau', 'limited', 'gains', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque',
+                              'torque_limit', 'within_limits', 'bag', 'paper']
+    assert fields[GainSet] == ['name', 'controller', 'index', 'trajectory', 'T', 'period', 'delay', 'kp', 'kv',
+                               'search']
+    assert fields[StabilityRow] == ['period', 'omega_max_stable', 'omega_15_stable', 'I1_at_omega_15',
+                                    'diverged_at_omega_15', 'bag']
+    assert set(results_json()['table4'][0]) == {'controller', 'trajectory', 'T', 'period', 'delay', 'gains', 'kp',
+                                                'kv', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque', 'torque_limit',
+                                                'within_limits', 'bag', 'paper'}
+
+
+@pytest.mark.parametrize('edit, named', [
+    (lambda data: data.pop('wall_time_s'), "missing key 'wall_time_s'"),
+    (lambda data: data.update(version=2), "unknown key 'version'"),
+    (lambda data: data['settings'].pop('taus'), "missing key 'settings.taus'"),
+    (lambda data: data['table2'][1].update(bagg='bags/x'), "unknown key 'table2[1].bagg'"),
+    (lambda data: data['table4'][3]['paper'].update(I3=1.0), "unknown key 'table4[3].paper.I3'"),
+    (lambda data: data['section2']['omega_procedure'][0].pop('within_limits'),
+     "missing key 'section2.omega_procedure[0].within_limits'"),
+    (lambda data: data['section2']['stability'][2].pop('diverged_at_omega_15'),
+     "missing key 'section2.stability[2].diverged_at_omega_15'"),
+    (lambda data: data['gains'][0].update(index='2.5'), "gains[0].index must be one of ('I1', 'I2', 'I'), got '2.5'"),
+    (lambda data: data['gains'][3].update(controller='pid'), 'gains[3].controller must be one of'),
+    (lambda data: data['table3'][0].update(tau='0.1'), "table3[0].tau must be a number, got '0.1'"),
+    (lambda data: data['table3'][0].update(I1=True), 'table3[0].I1 must be a number, got True'),
+    (lambda data: data['table2'][0].update(limited=0), 'table2[0].limited must be bool, got 0'),
+    (lambda data: data['table4'][0].update(kp=5.0), 'table4[0].kp must be a list'),
+    (lambda data: data['table4'][0].update(trajectory=1.0), 'table4[0].trajectory must be int, got 1.0'),
+    (lambda data: data['table2'][0].update(paper='0.086'), "table2[0].paper must be a number, got '0.086'"),
+    (lambda data: data['claims'][0].update(reproduced=None), 'claims[0].reproduced must be bool, got None'),
+    (lambda data: data['table4'][5].update(gains='pd_gravity-3.2-traj1-T1-dt0.01'),
+     "table4[5].gains names 'pd_gravity-3.2-traj1-T1-dt0.01', which is not in results.gains"),
+    (lambda data: data['gains'][2].update(name=data['gains'][1]['name']), 'gains[2].name'),
+    (lambda data: data.update(section2=[]), 'section2 must be a mapping'),
+])
+def test_results_off_the_schema_are_refused_naming_the_key(edit, named):
+    data = results_json()
+    edit(data)
+    with pytest.raises(ResultsError) as refused:
+        Results.from_json(data, 'runs/x/results.json')
+    assert str(refused.value).startswith('runs/x/results.json: ') and named in str(refused.value), str(refused.value)
+
+
+def test_a_results_file_that_is_not_json_is_refused_naming_it(tmp_path):
+    path = tmp_path / 'results.json'
+    path.write_text('{"command": ')
+    with pytest.raises(ResultsError, match=f'^{path}: cannot read the results'):
+        Results.load(path)
+    path.write_text(json.dumps(results_json()))
+    assert Results.load(path) == Results.from_json(results_json())
+
+
+# Claims and experiments ----------------------------------------------------------------------
+
+def test_the_claims_are_judged_from_the_typed_results():
+    claims = judge_claims(Results.from_json(results_json()), paper_settings())
+    verdicts = [claim.reproduced for claim in claims]
+    # CT better everywhere (ratio 3); within 1.5-4; CT grows faster; PD degrades more when limited; Table 3
+    # grows less (1.5 vs 2 and 3); two Table 3 episodes beyond the limit; stable at Δ <= 0.01 only.
+    assert verdicts == [True, True, True, True, True, False, True]
+    assert claims[0].evidence == 'Table 4 I1 ratios PD / CT per case: 3.00, 3.00, 3.00, 3.00'
+    assert claims[5].evidence.startswith('2 of 4 Table 3 episodes exceed a limit; the largest |P_i| / limit_i is 2.00')
+    assert claims[6].claim == 'At 100 Hz and above, computed torque stays stable at ω = 15'
+    assert claims[6].evidence.count('Δ = ') == 2
+
+
+class Recorder:
+    """An EpisodeRecorder that records nothing and scores what it is told."""
+
+    def __init__(self, scored: dict) -> None:
+        self.scored, self.runs = scored, []
+
+    def record_and_score(self, spec, bag, command=None):
+        self.runs.append((spec, bag, command))
+        return None, self.scored
+
+
+def test_an_episode_row_holds_the_papers_torque_limit_from_the_bags_nominal_maxima(tmp_path):
+    from ddarm.episodes.spec import EpisodeSpec
+    from ddarm.paper.experiments import Reproduction
+
+    (tmp_path / 'bags').mkdir()
+    reproduction = Reproduction(tmp_path, Budget.quick(), 'ddarm reproduce --quick')
+    nominal = [281.6, 254.5, 55.3]
+    recorder = Recorder({'I1': 0.5, 'I2': 1.5, 'I': 2.0, 'diverged': False, 'max_abs_torque': [563.2, 100.0, 1.0],
+                         'max_abs_nominal_torque': nominal})
+    spec = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
+    row = reproduction._episode(recorder, spec, 'one')
+    assert row['torque_limit'] == tuple((np.array(nominal) * 2.0).tolist())
+    assert row['within_limits'] is True and row['bag'] == 'bags/one'
+    assert recorder.runs == [(spec, tmp_path / 'bags' / 'one', 'ddarm reproduce --quick')]
+    assert reproduction.results.quick is True and reproduction.results.settings.taus == (0.0, 0.05, 0.1)
+
+
+def test_the_experiments_import_nothing_from_ros():
+    done = subprocess.run([sys.executable, '-c', 'import sys, ddarm.paper.experiments, ddarm.paper.report; '
+                           "print(sorted(name for name in sys.modules if name.startswith('ddarm.ros')))"],
+                          capture_output=True, text=True, cwd=ROOT, check=True)
+    assert done.stdout.strip() == '[]'
