@@ -3,7 +3,7 @@
 The engine (ddarm.episodes.engine) runs every episode through compiled kernels: the dynamics
 of ddarm.physics.dynamics, the laws and the delay of ddarm.control.laws, the plant step of
 ddarm.physics.plant and the sums of ddarm.episodes.indices. This module computes the same
-episode (MODEL.md 3, 5, 7, 8, 11, 12) with none of them: Pinocchio's own algorithms on the
+episode (spec §3, §5, §7, §8, §11, §12) with none of them: Pinocchio's own algorithms on the
 URDF (aba for the plant, crba + nonLinearEffects and computeGeneralizedGravity for the laws,
 rnea for the nominal torque), classical RK4 in NumPy, the compute delay as a deque of d + 1
 measurements, saturation by np.clip, the divergence bounds, and the indices as NumPy sums.
@@ -23,7 +23,7 @@ import numpy as np
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, plan_episode
 from ddarm.physics.arm import Arm
 
-MAX_POSITION, MAX_VELOCITY = 100.0, 1000.0  # rad, rad/s: beyond these the episode has diverged (MODEL.md 12)
+MAX_POSITION, MAX_VELOCITY = 100.0, 1000.0  # rad, rad/s: beyond these the episode has diverged (spec §12)
 
 
 @lru_cache(maxsize=32)

@@ -1,4 +1,4 @@
-"""The batch engine against the plain reference loop (reference_episode.py), episode by episode (MODEL.md 5-8),
+"""The batch engine against the plain reference loop (reference_episode.py), episode by episode (spec §5–8),
 and the compiled dynamics against Pinocchio's own algorithms."""
 
 import dataclasses

@@ -1,4 +1,4 @@
-"""The in-process episode runner against the paper's analysis (MODEL.md 5-8)."""
+"""The in-process episode runner against the paper's analysis (spec §5–8)."""
 
 import dataclasses
 

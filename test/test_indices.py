@@ -1,4 +1,4 @@
-"""The indices (2.5) and (3.2) with MODEL.md section 8's weights, on cases small enough to do by hand."""
+"""The indices (2.5) and (3.2) with spec §8's weights, on cases small enough to do by hand."""
 
 import dataclasses
 

@@ -1,4 +1,4 @@
-"""The control laws, the delay buffer and the gain rules of MODEL.md sections 5-6."""
+"""The control laws, the delay buffer and the gain rules of spec §5–6."""
 
 import numpy as np
 import pytest

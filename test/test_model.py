@@ -1,4 +1,4 @@
-"""The URDF through Pinocchio against MODEL.md section 3's closed forms, and free-motion physics."""
+"""The URDF through Pinocchio against spec §3's closed forms, and free-motion physics."""
 
 import numpy as np
 import pytest

@@ -11,7 +11,7 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_traje
 from ddarm.physics.arm import Arm
 
 DATA = Path(__file__).resolve().parent.parent / 'ddarm' / 'paper' / 'data'
-# MODEL.md section 4, as the code wrote them before they were files.
+# spec §4, as the code wrote them before they were files.
 ENDPOINTS = {1: ((0.0, np.pi / 3, -2 * np.pi / 3), (np.pi / 2, 0.0, 0.0)),
              2: ((np.pi / 2, 0.0, 0.0), (np.pi, np.pi / 2, -np.pi))}
 GOOD = """joint_names: [a, b]

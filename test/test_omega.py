@@ -10,7 +10,7 @@ from ddarm_control.node import ControllerNode
 from ddarm.cli.main import main
 
 G = 9.81
-# MODEL.md section 3 at trajectory 1's q_f = (π/2, 0, 0): c2 = c3 = c23 = 1.
+# spec §3 at trajectory 1's q_f = (π/2, 0, 0): c2 = c3 = c23 = 1.
 MASS_AT_QF = np.array([[1 + 3.5 + 10 * 1.5**2 + 1, 0, 0], [0, 27.0, 8.5], [0, 8.5, 3.5]])
 
 

@@ -19,7 +19,7 @@ from ddarm.paper.settings import SETTINGS_PATH, Budget, Case, SettingsError, loa
 ROOT = Path(__file__).resolve().parent.parent
 CONTROLLERS = ('pd_gravity', 'computed_torque')
 
-# What ddarm/paper/experiments.py held before the settings were data (MODEL.md section 10).
+# What ddarm/paper/experiments.py held before the settings were data (spec §10).
 TAUS = tuple(round(0.01 * i, 2) for i in range(11))
 TABLE2 = {
     ('pd_gravity', False): (0.086, 0.089, 0.095, 0.107, 0.106, 0.113, 0.122, 0.129, 0.138, 0.149, 0.156),

@@ -1,4 +1,4 @@
-"""The gain searches (MODEL.md 9): they improve on their starts, are deterministic, and never prefer a divergence."""
+"""The gain searches (spec §9): they improve on their starts, are deterministic, and never prefer a divergence."""
 
 import numpy as np
 import pytest

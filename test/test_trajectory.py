@@ -1,4 +1,4 @@
-"""The programmed motions of MODEL.md section 4 and the nominal torque and limits of section 7."""
+"""The programmed motions of spec §4 and the nominal torque and limits of section 7."""
 
 import numpy as np
 import pytest
@@ -39,7 +39,7 @@ def test_bang_bang_phases_and_the_hold_after_t():
     times = sample_times(2.0, 0.01)
     q, v, a = motion.sample(times)
     assert a[0, 0] == 1.0 and a[99, 0] == 1.0  # 4 (qf - q0) / T²
-    assert a[100, 0] == -1.0  # t = T/2 exactly: deceleration (MODEL.md 5)
+    assert a[100, 0] == -1.0  # t = T/2 exactly: deceleration (spec §5)
     assert a[200, 0] == -1.0  # t = T: deceleration too
     assert q[100, 0] == pytest.approx(0.5) and v[100, 0] == pytest.approx(1.0)
     q_after, v_after, a_after = motion.sample(2.5)

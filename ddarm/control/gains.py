@@ -1,4 +1,4 @@
-"""Gains from the simplified models of section 2: the ω rules and the steady-state errors (MODEL.md 6).
+"""Gains from the simplified models of section 2: the ω rules and the steady-state errors (spec §6).
 
 Sign convention: MODEL.md (1.1) adds P^z to the actuator torque, M q̈ + V + G + F = P + P^z.
 The paper writes the external-torque error as K_p e = M⁻¹(q_f) P^z, which holds for P^z

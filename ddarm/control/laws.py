@@ -1,4 +1,4 @@
-"""The two sampled control laws of section 2 and their compute delay (MODEL.md 5).
+"""The two sampled control laws of section 2 and their compute delay (spec §5).
 
 The compiled functions are the one definition of each law and of the delay: the batch engine
 runs them for many episodes at once (episodes on the last axis, "lanes"), the controller nodes
@@ -70,7 +70,7 @@ def computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, 
     """(2.6): P = M̂(q)(q̈^d + K_p e + K_v ė) + V̂(q, q̇) + Ĝ(q) + F̂(q̇) at the measured state.
 
     The model's inverse dynamics at the measured state with the commanded acceleration; the
-    paper's (2.11) swaps K_p and K_v by a misprint, (2.6) is meant (MODEL.md 5).
+    paper's (2.11) swaps K_p and K_v by a misprint, (2.6) is meant (spec §5).
     """
     parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia = chain
     rotation, translation, spin, velocity, spin_rate, acceleration, force, moment = work[:8]

@@ -1,6 +1,6 @@
 """The episode engine: B closed-loop episodes of one template in one call; one episode is a batch of one.
 
-The loop (MODEL.md 5) is assembled here from the one definition of each piece: the delay and
+The loop (spec §5) is assembled here from the one definition of each piece: the delay and
 the laws (ddarm.control.laws), the actuators' saturation and the sampled plant step
 (ddarm.physics.plant), and the indices (ddarm.episodes.indices). The whole episode is compiled,
 and the members are shared out over the cores; why compiled loops, see ddarm.physics.dynamics.
@@ -45,7 +45,7 @@ class BatchError(DdarmError, ValueError):
 
 @numba.njit(**COMPILED)
 def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, plant, record, series, outcome):
-    """Members start … start + lanes - 1 through the loop of MODEL.md 5, all samples in step.
+    """Members start … start + lanes - 1 through the loop of spec §5, all samples in step.
 
     Each member has its own gains, q̇(0), torque limit and plant mass scale; a member stops at a
     non-finite command for sample n (scored up to n - 1) or a state out of bounds after the
@@ -140,7 +140,7 @@ def _batch_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _initial_velocities(template: EpisodeSpec, plan: EpisodePlan, tau, size: int) -> np.ndarray:
-    """q̇(0) per member: the plan's, or (3.1) with MODEL.md 7's sign at each member's τ."""
+    """q̇(0) per member: the plan's, or (3.1) with spec §7's sign at each member's τ."""
     if tau is None:
         return np.broadcast_to(plan.v0, (size, len(plan.v0)))
     tau = np.array(tau, dtype=float)
@@ -159,7 +159,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
                    threads: int | None = None) -> Episodes:
     """B episodes of `template` in one call, member b with gains kp[b], kv[b] (shape (B, n) each).
 
-    Every member is the episode `template` with kp, kv replaced by the member's (MODEL.md 5-8:
+    Every member is the episode `template` with kp, kv replaced by the member's (spec §5–8:
     the zero-order hold, P_n from the state of sample n - d, saturation, divergence, the indices
     (2.5) and (3.2)). Optional per-member variations, each one row per member, replace the
     template's: `tau` (B,) the disturbance (3.1), `torque_limit` (B, n) the actuator limits,
@@ -216,7 +216,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     zero = np.zeros(dof)
     gravity_ref = (gravity_feedforward(load_arm(template.urdf), plan.q_ref) if template.controller == 'pd_gravity'
                    else np.zeros_like(plan.q_ref))
-    # The controller's model of friction F̂ is the plant's (computed torque only; MODEL.md 5).
+    # The controller's model of friction F̂ is the plant's (computed torque only; spec §5).
     compiled = options.compiled(dof)
     viscous_model, coulomb_model = (compiled[1], compiled[2]) if template.controller == 'computed_torque' else (
         zero, zero)
@@ -245,7 +245,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
 
 
 def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
-    """One episode in-process (MODEL.md 5), with its series: a batch of one."""
+    """One episode in-process (spec §5), with its series: a batch of one."""
     plan = plan if plan is not None else check_episode(spec)
     try:
         kp, kv = checked_gains(spec.kp, spec.kv, load_chain(spec.urdf).dof)

@@ -1,4 +1,4 @@
-"""The performance indices I1 (2.5), I2 and I = I1 + I2 (3.2), with the weights of MODEL.md section 8.
+"""The performance indices I1 (2.5), I2 and I = I1 + I2 (3.2), with the weights of spec §8.
 
 `accumulate` is their one definition, sample by sample: the batch engine sums it as it runs
 the episodes, `score_series` over recorded samples (the ROS driver's and the bag scorer's).

@@ -3,7 +3,7 @@
 ```yaml
 joint_names: [joint1, joint2, joint3]  # the controlled joints, in the order of start and goal
 duration: 1.0                          # T, s
-profile: bang_bang                     # s(t/T) of MODEL.md section 4
+profile: bang_bang                     # s(t/T) of spec §4
 start: [0.0, 1.0471975511965976, -2.0943951023931953]  # q(0), rad
 goal: [1.5707963267948966, 0.0, 0.0]                    # q(T), rad
 ```

@@ -1,4 +1,4 @@
-"""The programmed motions of section 3: bang-bang joint profiles, and their nominal torque (MODEL.md 4, 7)."""
+"""The programmed motions of section 3: bang-bang joint profiles, and their nominal torque (spec §4, §7)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ class MotionError(DdarmError, ValueError):
 
 
 # Sample instants land on T/2 and T only up to rounding (0.01 * 50): within this
-# relative distance of a phase boundary the later phase applies (MODEL.md 5).
+# relative distance of a phase boundary the later phase applies (spec §5).
 _PHASE_EDGE = 1e-9
 
 
@@ -58,7 +58,7 @@ class ProgrammedMotion:
         return position, velocity, acceleration
 
 
-# The paper's motions are data: ddarm/paper/data/trajectory-<number>.yaml (MODEL.md section 4).
+# The paper's motions are data: ddarm/paper/data/trajectory-<number>.yaml (spec §4).
 _PAPER_MOTIONS = {int(path.stem.removeprefix('trajectory-')): path
                   for path in (Path(__file__).resolve().parents[1] / 'paper' / 'data').glob('trajectory-*.yaml')}
 PAPER_TRAJECTORIES = tuple(sorted(_PAPER_MOTIONS))
@@ -92,12 +92,12 @@ def sample_count(duration: float, period: float) -> int:
 
 
 def sample_times(duration: float, period: float) -> np.ndarray:
-    """t_j = j Δ for j = 0 … k_max, each a product, never a running sum (MODEL.md 5)."""
+    """t_j = j Δ for j = 0 … k_max, each a product, never a running sum (spec §5)."""
     return np.arange(sample_count(duration, period) + 1) * period
 
 
 def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.ndarray:
-    """P^nom(t) = M(q^d) q̈^d + V(q^d, q̇^d) + G(q^d) at each time (MODEL.md 7); shape (len(times), n).
+    """P^nom(t) = M(q^d) q̈^d + V(q^d, q̇^d) + G(q^d) at each time (spec §7); shape (len(times), n).
 
     Computed off-line, before the episode, by Pinocchio (the model's source): only the loop runs compiled.
     """
@@ -106,5 +106,5 @@ def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.
 
 
 def paper_torque_limit(nominal: np.ndarray) -> np.ndarray:
-    """Table 2's "inputs limited": |P_i| ≤ 2 max_j |P_i^nom(jΔ)| (MODEL.md 7)."""
+    """Table 2's "inputs limited": |P_i| ≤ 2 max_j |P_i^nom(jΔ)| (spec §7)."""
     return 2.0 * np.max(np.abs(nominal), axis=0)

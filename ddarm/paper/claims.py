@@ -1,4 +1,4 @@
-"""The paper's claims (MODEL.md section 10), each judged from our numbers alone."""
+"""The paper's claims (spec §10), each judged from our numbers alone."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The plant: the arm's continuous dynamics under a torque held over each sampling period (MODEL.md 3, 5, 7).
+"""The plant: the arm's continuous dynamics under a torque held over each sampling period (spec §3, §5, §7).
 
 `advance` is the one definition of the sampled plant step (hold, integration, divergence) and
 `saturate` of the actuators' limit: the batch engine runs them for many episodes at once, the
@@ -91,7 +91,7 @@ class PlantOptions:
 
 
 def disturbed_initial_state(position: np.ndarray, velocity_at_tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3.1) with MODEL.md 7's sign: start at q^d(0) with q̇(0) = -q̇^d(τ), against the motion."""
+    """(3.1) with spec §7's sign: start at q^d(0) with q̇(0) = -q̇^d(τ), against the motion."""
     return np.array(position, dtype=float), -np.array(velocity_at_tau, dtype=float)
 
 
@@ -106,7 +106,7 @@ def saturate(command, limit, applied, lanes):
 
 @numba.njit(**COMPILED, inline='always')
 def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v, load, lanes):
-    """P + P^z - F(q̇): the actuators' torque plus the plant's other joint torques (MODEL.md 3)."""
+    """P + P^z - F(q̇): the actuators' torque plus the plant's other joint torques (spec §3)."""
     for i in range(v.shape[0]):
         for b in range(lanes):
             load[i, b] = applied[i, b] + (external_torque[i] - viscous_friction[i] * v[i, b]
@@ -122,7 +122,7 @@ def step_workspace(n, lanes):
 
 @numba.njit(**COMPILED)
 def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
-    """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4, `substeps` steps; MODEL.md 3, 5).
+    """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4, `substeps` steps; spec §3, §5).
 
     Each lane whose new state is finite and within the bounds takes it (within[b] = True); any
     other keeps its state of t_n, frozen as the last one within bounds (within[b] = False).

@@ -1,4 +1,4 @@
-"""The simplified-model procedure of section 2 (MODEL.md 6): the smallest ω meeting the permitted
+"""The simplified-model procedure of section 2 (spec §6): the smallest ω meeting the permitted
 steady-state errors, then ω raised while the simulated torques stay acceptable."""
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ class OmegaChoice:
 
 
 def steady_state_error_per_unit_gain(spec: EpisodeSpec) -> tuple[np.ndarray, np.ndarray]:
-    """(c, g) with the steady-state error e_i = c_i / (g_i ω²) of the ω rule at q_f (MODEL.md 6).
+    """(c, g) with the steady-state error e_i = c_i / (g_i ω²) of the ω rule at q_f (spec §6).
 
     The disturbance is the spec's constant P^z and its plant/model mass mismatch; both may act.
     """

@@ -1,4 +1,4 @@
-"""Optimisation of the indices I1 (2.5), I2 or I (3.2) over the six diagonal gains (MODEL.md 9), through the batch engine.
+"""Optimisation of the indices I1 (2.5), I2 or I (3.2) over the six diagonal gains (spec §9), through the batch engine.
 
 Both methods search x = (log k_p, log k_v), so every point is a valid positive gain and a
 step means the same relative change for a large and a small gain. Every evaluation of an
@@ -136,7 +136,7 @@ def _start_points(start_kp, start_kv) -> np.ndarray:
 def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budget: int,
                  method: str = 'nelder-mead', seed: int = 0, step: float = 0.5,
                  popsize: int | None = None) -> SearchResult:
-    """Minimise the index I1 (2.5), I2 or I (3.2) of `template`'s episode over its diagonal gains (MODEL.md 9).
+    """Minimise the index I1 (2.5), I2 or I (3.2) of `template`'s episode over its diagonal gains (spec §9).
 
     Args:
         template: the episode (controller, trajectory, T, Δ, delay, τ, limits, plant); its own
