@@ -1,9 +1,9 @@
-"""Figures for the batch engine (issue 5): episodes/s against B and threads, the scalar runner, memory, searches.
+"""Figures for the batch engine (issue 5): episodes/s against B and threads, one episode per call, memory, searches.
 
     .venv/bin/python bench/batch_throughput.py [--memory-batches 100] [--json]
 
 Prints (a) batch episodes/s of the reference case at several B, on all cores and on one;
-(b) `ddarm bench`'s comparison with the scalar runner; (c) what Pinocchio's abaInParallel
+(b) `ddarm bench`'s comparison with one episode per call (`run_episode`); (c) what Pinocchio's abaInParallel
 over a ModelPool would take for the same accelerations, the alternative the engine was
 measured against; (d) the peak RSS before and after many batches of 1,000 (flat memory);
 (e) the wall time of a small CMA-ES and Nelder-Mead search.
@@ -114,7 +114,7 @@ def main() -> None:
           f"{mem['peak_rss_after_mib']:.0f} MiB after {mem['batches']} more ({mem['episodes_per_s']:.0f} episodes/s)")
     for method, search in figures['searches'].items():
         print(f"search {method}: {search['episodes']} episodes in {search['batches']} batches, "
-              f"{search['wall_s']:.1f} s; I (3.2) {search['best_start']:.4f} at the best start -> {search['index']:.4f}")
+              f"{search['wall_s']:.1f} s; I {search['best_start']:.4f} at the best start -> {search['index']:.4f}")
 
 
 if __name__ == '__main__':

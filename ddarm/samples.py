@@ -11,6 +11,10 @@ from ddarm.errors import DdarmError
 
 # Refused before any work (FAULTS.md 6): far beyond the joint count of any arm we run.
 MAX_JOINTS = 64
+# Refused before any work (FAULTS.md 6): far beyond an episode length we run.
+MAX_REFERENCE_POINTS = 1_000_000
+# The fields of a reference point, in the order a reference holds them: q^d, q̇^d, q̈^d, P^nom.
+REFERENCE_FIELDS = ('positions', 'velocities', 'accelerations', 'effort')
 
 
 class MessageError(DdarmError, ValueError):
@@ -37,3 +41,40 @@ def joint_order(names, joints: list[str], what: str) -> np.ndarray:
     if unknown or missing:
         raise MessageError(f'{what}: unknown joints {unknown}, missing joints {missing} (expected {joints})')
     return np.array([names.index(joint) for joint in joints])
+
+
+def finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
+    """`values` as `expected` finite numbers; refuses another count, or a NaN or infinite value."""
+    if len(values) != expected:
+        raise MessageError(f'{name}: {field} has {len(values)} values for {expected} joints')
+    array = np.array(values, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(array))
+    if bad.size:
+        raise MessageError(f'{name}: {field} is not finite at index {bad.tolist()}: {array[bad].tolist()}')
+    return array
+
+
+def checked_reference(names, points, joints: list[str], period: float) -> tuple[np.ndarray, ...]:
+    """A reference's times and fields (our joint order), each (samples, n): one point per sample from t = 0.
+
+    `points` are (t, positions, velocities, accelerations, effort), t the point's time from the
+    start; each must be a sample instant j Δ, in order, and every field `len(joints)` finite numbers.
+    Returns (times, q, v, a, nominal), times the sample instants j Δ.
+    """
+    what = 'reference'
+    order = joint_order(names, joints, what)
+    points = list(points)
+    if not points:
+        raise MessageError(f'{what}: no points')
+    if len(points) > MAX_REFERENCE_POINTS:
+        raise MessageError(f'{what}: {len(points)} points is more than the {MAX_REFERENCE_POINTS} allowed')
+    count = len(joints)
+    fields = {name: [] for name in REFERENCE_FIELDS}
+    times = []
+    for j, (t, *values) in enumerate(points):
+        if abs(t - j * period) > 1e-6 * period + 1e-9:
+            raise MessageError(f'{what}: point {j} is at {t} s, not at sample time {j * period} s')
+        times.append(j * period)
+        for name, field in zip(REFERENCE_FIELDS, values):
+            fields[name].append(finite_array(field, f'{what} point {j}', name, count)[order])
+    return (np.array(times), *(np.array(fields[name]) for name in REFERENCE_FIELDS))

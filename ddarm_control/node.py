@@ -21,6 +21,7 @@ from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, 
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
+from ddarm.physics.plant import NODE_PERIOD_RANGE
 from ddarm.ros.interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                      SAMPLE_QOS, Reference, descriptor, joint_state_msg, plain_parameters,
                                      proposed_values, read_joint_state, read_reference,
@@ -104,7 +105,7 @@ class ControllerNode(Node):
             ('omega', 0.0, descriptor('ω rule of section 2 when > 0 (overrides kp, kv)', floating=(0.0, 1e4))),
             ('compute_delay_steps', 1, descriptor('compute delay d in samples', integer=(0, MAX_DELAY))),
             ('period', 0.01, descriptor('sampling period Δ in s (to read sample indices from stamps)',
-                                        floating=(1e-4, 1.0))),
+                                        floating=NODE_PERIOD_RANGE)),
             ('max_sample_gap', 100, descriptor('states more than this many samples ahead of the expected one '
                                                'are refused', integer=(1, 1_000_000))),
             ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque), N m s/rad")),

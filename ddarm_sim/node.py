@@ -19,8 +19,8 @@ from std_srvs.srv import Trigger
 
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
-from ddarm.physics.plant import (MAX_SUBSTEPS, Plant, PlantError, PlantOptions, checked_mass_scale,
-                                 disturbed_initial_state, warm_up)
+from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
+                                 checked_mass_scale, warm_up)
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, plain_parameters, proposed_values,
@@ -28,7 +28,8 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                      undeclared_overrides)
 from ddarm.ros.executable import run_node
 from ddarm.samples import MessageError
-from ddarm.motion.programmed import PAPER_TRAJECTORIES, paper_trajectory
+from ddarm.arrays import per_joint
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_start, paper_trajectory
 
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
@@ -69,23 +70,18 @@ def plant_settings(values: dict, dof: int) -> PlantSettings:
         checked_mass_scale(mass_scale, dof)
     trajectory = values['trajectory']
     if trajectory == 0:
-        q0 = _optional_array(values['initial_position'])
-        v0 = _optional_array(values['initial_velocity'])
-        q0 = np.zeros(dof) if q0 is None else q0
-        v0 = np.zeros(dof) if v0 is None else v0
-        for name, state in (('initial_position', q0), ('initial_velocity', v0)):
-            if state.shape != (dof,) or not np.all(np.isfinite(state)):
-                raise PlantError(f'{name} needs {dof} finite values, got {values[name]!r}')
+        q0, v0 = (np.zeros(dof) if _optional_array(values[name]) is None
+                  else per_joint(name, values[name], dof, PlantError) for name in ('initial_position', 'initial_velocity'))
     else:
         if trajectory not in PAPER_TRAJECTORIES:
             raise PlantError(f'trajectory must be 0 (initial_position) or one of {list(PAPER_TRAJECTORIES)}')
-        if not 0 <= values['tau'] <= values['duration']:
-            raise PlantError(f"tau must be within [0, duration = {values['duration']}] s, got {values['tau']}")
         motion = paper_trajectory(trajectory, values['duration'])
         if motion.dof != dof:
             raise PlantError(f'trajectory {trajectory} has {motion.dof} joints, the URDF {dof}')
-        _, v_at_tau, _ = motion.sample(values['tau'])
-        q0, v0 = disturbed_initial_state(motion.q0, v_at_tau)
+        try:
+            q0, v0 = disturbed_start(motion, values['tau'])
+        except MotionError as error:
+            raise PlantError(str(error)) from error
     return PlantSettings(values['mode'], values['period'], values['command_timeout'],
                          values['required_subscribers'], values['max_samples'], options,
                          None if mass_scale is None else tuple(mass_scale), q0, v0)
@@ -144,8 +140,8 @@ class PlantNode(Node):
         declared = [
             ('urdf', '', descriptor('URDF of the arm ("" = the ddarm arm)', read_only=True)),
             ('mode', 'lockstep', descriptor('lockstep (deterministic) or realtime (wall clock at 1/period)')),
-            ('period', 0.01, descriptor('sampling period Δ in s', floating=(1e-4, 1.0))),
-            ('substeps', 8, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
+            ('period', 0.01, descriptor('sampling period Δ in s', floating=NODE_PERIOD_RANGE)),
+            ('substeps', DEFAULT_SUBSTEPS, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
             ('command_timeout', 5.0, descriptor('lockstep: wall seconds to wait for a command', floating=(1e-3, 3600.0))),
             ('required_subscribers', 1, descriptor('joint_states subscribers to wait for before sample 0',
                                                    integer=(1, 100))),
@@ -155,8 +151,8 @@ class PlantNode(Node):
             ('coulomb_friction', double_array, descriptor('Coulomb friction N m per joint (unset: none)')),
             ('external_torque', double_array, descriptor('constant external joint torques P^z in N m (unset: none)')),
             ('mass_scale', double_array, descriptor('plant link mass / model link mass per link (unset: 1)')),
-            ('trajectory', 1, descriptor('start at q^d(0) of trajectory 1 or 2; 0: initial_position/velocity',
-                                         integer=(0, 2))),
+            ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)}; '
+                                         '0: initial_position/velocity', integer=(0, max(PAPER_TRAJECTORIES)))),
             ('duration', 1.0, descriptor('T of the programmed motion in s (for the start state)',
                                          floating=(1e-3, 3600.0))),
             ('tau', 0.0, descriptor('initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s',

@@ -11,10 +11,13 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from ddarm.control.laws import CONTROLLERS
+from ddarm.control.laws import CONTROLLERS, MAX_DELAY
+from ddarm.motion.programmed import PAPER_TRAJECTORIES
+from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.ros.executable import run_executable
 from ddarm.ros.interface import descriptor, proposed_values, refuse_undeclared_parameters, undeclared_overrides
 from ddarm.recording.bags import STORAGES, BagError, score_bag
+from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode
 from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError
@@ -41,11 +44,12 @@ class TunerNode(GraphDriver):
             ('kp', double_array, descriptor('K_p diagonal (unless gains_file)')),
             ('kv', double_array, descriptor('K_v diagonal (unless gains_file)')),
             ('gains_file', '', descriptor('controller parameter YAML with kp, kv, compute_delay_steps')),
-            ('trajectory', 1, descriptor('programmed motion 1 or 2', integer=(1, 2))),
+            ('trajectory', 1, descriptor(f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)}',
+                                         integer=(min(PAPER_TRAJECTORIES), max(PAPER_TRAJECTORIES)))),
             ('duration', 1.0, descriptor('T in s', floating=(1e-3, 3600.0))),
-            ('period', 0.01, descriptor('Δ in s', floating=(1e-4, 1.0))),
-            ('delay', 1, descriptor('compute delay d in samples (unless gains_file)', integer=(0, 100))),
-            ('substeps', 8, descriptor('plant RK4 steps per period', integer=(1, 10_000))),
+            ('period', 0.01, descriptor('Δ in s', floating=NODE_PERIOD_RANGE)),
+            ('delay', 1, descriptor('compute delay d in samples (unless gains_file)', integer=(0, MAX_DELAY))),
+            ('substeps', DEFAULT_SUBSTEPS, descriptor('plant RK4 steps per period', integer=(1, MAX_SUBSTEPS))),
             ('taus', [0.0], descriptor('initial velocity disturbances τ (3.1), one episode each, s')),
             ('torque_limits', ['none'], descriptor("'none' and/or 'paper' (2 x max nominal), each with every τ")),
             ('output_root', str(DEFAULT_ROOT), descriptor('folder that holds the run folders')),
@@ -82,10 +86,16 @@ class TunerNode(GraphDriver):
                 with open(values['gains_file']) as file:
                     document = yaml.safe_load(file)
                 gains = document[values['controller']]['ros__parameters']
-                return gains['kp'], gains['kv'], gains.get('compute_delay_steps', values['delay'])
+                kp, kv = gains['kp'], gains['kv']
+                delay, period = gains.get('compute_delay_steps', values['delay']), gains.get('period')
             except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as error:  # ValueError: not UTF-8
                 raise EpisodeError(f"gains_file {values['gains_file']}: no {values['controller']} kp/kv "
                                    f'({type(error).__name__}: {error})') from error
+            if period is not None and period != values['period']:
+                # Gains tuned for one sampling period are other gains at another: never swept silently.
+                raise EpisodeError(f"gains_file {values['gains_file']} holds gains for period {period!r} s; the "
+                                   f"sweep's period is {values['period']!r} s: set period to match")
+            return kp, kv, delay
         if values['kp'] is None or values['kv'] is None:
             raise EpisodeError('set kp and kv, or gains_file')
         return values['kp'], values['kv'], values['delay']
@@ -125,8 +135,7 @@ class TunerNode(GraphDriver):
             # The episode is on disk and closed: scoring it needs no ROS.
             scored = score_bag(path)
             run.add_episode({'name': name, 'bag': str(path), **{key: scored[key] for key in (
-                'I1', 'I2', 'I', 'diverged', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque',
-                'spec')}, 'graph_indices': result.indices()})
+                *INDICES, 'diverged', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque', 'spec')}, 'graph_indices': result.indices()})
             self.get_logger().info(f"{name}: I1 {scored['I1']:.6g}  I2 {scored['I2']:.6g}  I {scored['I']:.6g}"
                                    f'  (scored from {path})')
 

@@ -433,3 +433,172 @@ def test_a_writer_dropped_unclosed_still_leaves_a_bag_marked_incomplete(tmp_path
     assert bag_status(tmp_path / 'bag') == 'incomplete'
     with pytest.raises(BagError, match='marked incomplete'):
         score_bag(tmp_path / 'bag')
+
+
+# Bags whose configuration or reference cannot be scored: named, never a traceback ------------------------------
+
+SYNTHETIC_JOINTS = ['joint1', 'joint2', 'joint3']
+SYNTHETIC_SPEC = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, duration=0.03)
+
+
+def _stamp(t: float, kind: str = 'builtin_interfaces/msg/Time'):
+    nanoseconds = round(t * 1e9)
+    return TYPESTORE.types[kind](sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
+
+
+def _joint_state(t: float, position=(), velocity=(), effort=()):
+    types = TYPESTORE.types
+    return types['sensor_msgs/msg/JointState'](
+        header=types['std_msgs/msg/Header'](stamp=_stamp(t), frame_id=''), name=list(SYNTHETIC_JOINTS),
+        position=np.array(position, dtype=float), velocity=np.array(velocity, dtype=float),
+        effort=np.array(effort, dtype=float))
+
+
+def synthetic_bag(path, episode=None, change_reference=None, change_state=None):
+    """A complete bag of a four-sample episode written with EpisodeBagWriter, from made-up numbers.
+
+    `episode` replaces the /ddarm/episode record; `change_reference(times, fields)` and
+    `change_state(n, (position, velocity, effort))` may alter what is written."""
+    types = TYPESTORE.types
+    period, k_max = SYNTHETIC_SPEC.period, 3
+    times = [j * period for j in range(k_max + 1)]
+    fields = {'positions': np.linspace(0.0, 0.3, 12).reshape(4, 3), 'velocities': np.full((4, 3), 0.5),
+              'accelerations': np.zeros((4, 3)), 'effort': np.array([[1.0, 20.0, 5.0]] * 4)}
+    if change_reference is not None:
+        change_reference(times, fields)
+    record = episode if episode is not None else {'spec': SYNTHETIC_SPEC.to_dict(), 'joints': SYNTHETIC_JOINTS,
+                                                  'k_max': k_max, 'torque_limit': None}
+    with EpisodeBagWriter(path, record) as bag:
+        points = [types['trajectory_msgs/msg/JointTrajectoryPoint'](
+            **{name: values[j] for name, values in fields.items()},
+            time_from_start=_stamp(t, 'builtin_interfaces/msg/Duration')) for j, t in enumerate(times)]
+        bag.write_message('/reference', 0, types['trajectory_msgs/msg/JointTrajectory'](
+            header=types['std_msgs/msg/Header'](stamp=_stamp(0.0), frame_id=''), joint_names=SYNTHETIC_JOINTS,
+            points=points))
+        for n in range(k_max + 2):
+            t = n * period
+            state = (fields['positions'][min(n, k_max)] - 0.01, fields['velocities'][min(n, k_max)],
+                     () if n == 0 else [1.5, 19.0, 5.5])
+            if change_state is not None:
+                t, state = change_state(n, t, state)
+            bag.write_message('/joint_states', round(t * 1e9), _joint_state(t, *state))
+            if n <= k_max:
+                bag.write_message('/effort_command', round(t * 1e9), _joint_state(t, effort=[1.5, 19.0, 5.5]))
+        bag.close(complete=True)
+    return path
+
+
+def test_a_synthetic_bag_scores(tmp_path):
+    scored = score_bag(synthetic_bag(tmp_path / 'bag'))
+    # |e| = 0.01 rad on every joint at each of the 4 samples, over k_max = 3; the torques 0.5 N m off the nominal.
+    assert scored['I1'] == pytest.approx(4 * 3 * np.degrees(0.01) / 3)
+    assert scored['I2'] == pytest.approx(4 * (0.5 * 10 / 1.0 + 1.0 * 10 / 20.0 + 0.5 * 10 / 5.0) / 3)
+    assert scored['samples_scored'] == 4 and not scored['diverged']
+
+
+def _spec_with(**changes):
+    return {'spec': {**SYNTHETIC_SPEC.to_dict(), **changes}, 'joints': SYNTHETIC_JOINTS, 'k_max': 3,
+            'torque_limit': None}
+
+
+@pytest.mark.parametrize('episode, refused', [
+    (_spec_with(gain_schedule=True), r"holds a spec that cannot be run: .*unexpected keyword argument 'gain_schedule'"),
+    (_spec_with(kp='stiff'), 'holds a spec that cannot be run: could not convert string to float'),
+    (_spec_with(kp=225.0), 'holds a spec that cannot be run: .*not iterable'),
+    (_spec_with(controller='lqr'), 'holds a spec that cannot be run: controller must be one of'),
+    (_spec_with(torque_limit='maximum'), "holds a spec that cannot be run: torque_limit must be 'none', 'paper'"),
+    (_spec_with(tau=5.0), 'holds a spec that cannot be run: .*tau'),
+    ({**_spec_with(), 'torque_limit': [1.0, 2.0]}, 'torque_limit needs 3 values'),
+    ({**_spec_with(), 'torque_limit': [1.0, -2.0, 3.0]}, 'torque_limit must be finite and positive'),
+])
+def test_a_configuration_that_is_not_a_spec_is_refused_naming_the_bag(tmp_path, episode, refused):
+    bag = synthetic_bag(tmp_path / 'bag', episode=episode)
+    with pytest.raises(BagError, match=f'^{re.escape(str(bag))}: .*{refused}'):
+        score_bag(bag)
+
+
+def _nan_nominal(times, fields):
+    fields['effort'][1, 2] = np.nan
+
+
+def _infinite_position(times, fields):
+    fields['positions'][2, 0] = np.inf
+
+
+def _off_the_samples(times, fields):
+    times[2] = 0.025
+
+
+def _no_torque_on_joint_2(times, fields):
+    fields['effort'][:, 1] = 0.0
+
+
+def _short_point(times, fields):
+    fields['velocities'] = [row[:2] for row in fields['velocities']]
+
+
+@pytest.mark.parametrize('change, refused', [
+    (_nan_nominal, r'/reference: reference point 1: effort is not finite at index \[2\]'),
+    (_infinite_position, r'/reference: reference point 2: positions is not finite at index \[0\]'),
+    (_off_the_samples, r'/reference: reference: point 2 is at 0.025 s, not at sample time 0.02 s'),
+    (_short_point, r'/reference: reference point 0: velocities has 2 values for 3 joints'),
+    (_no_torque_on_joint_2, 'every joint needs a nonzero finite nominal torque'),  # an IndicesError
+])
+def test_a_reference_the_indices_cannot_use_is_refused_naming_the_bag(tmp_path, change, refused):
+    bag = synthetic_bag(tmp_path / 'bag', change_reference=change)
+    with pytest.raises(BagError, match=f'^{re.escape(str(bag))}: {refused}'):
+        score_bag(bag)
+
+
+def _nan_velocity(n, t, state):
+    return t, (state[0], [0.0, np.nan, 0.0], state[2]) if n == 2 else state
+
+
+def _between_samples(n, t, state):
+    return (t + 0.004 if n == 2 else t), state
+
+
+def _no_effort(n, t, state):
+    return t, (state[0], state[1], ()) if n == 3 else state
+
+
+def _diverged_without_effort(n, t, state):
+    return t, ((), (), ()) if n == 3 else state
+
+
+@pytest.mark.parametrize('change, refused', [
+    (_nan_velocity, r'/joint_states sample 2: velocity is not finite at index \[1\]'),
+    (_between_samples, '/joint_states: stamp 0.024000000 s is not a sample instant'),
+    (_no_effort, r'the torques applied over samples \[2\] \(each the effort of the next state\) are missing: '
+                 'the episode is incomplete'),
+    (_diverged_without_effort, r'the torques applied over samples \[2\] \(each the effort of the next state\) '
+                               'are missing'),
+])
+def test_recorded_states_the_scorer_cannot_use_are_refused_naming_the_bag(tmp_path, change, refused):
+    bag = synthetic_bag(tmp_path / 'bag', change_state=change)
+    with pytest.raises(BagError, match=f'^{re.escape(str(bag))}: {refused}'):
+        score_bag(bag)
+
+
+def test_a_divergence_is_scored_on_the_samples_before_it(tmp_path):
+    def diverge(n, t, state):
+        return t, ((), (), state[2]) if n == 3 else state  # the plant left its bounds during sample 2
+
+    scored = score_bag(synthetic_bag(tmp_path / 'bag', change_state=diverge))
+    assert scored['diverged'] and scored['diverged_at_sample'] == 3 and scored['samples_scored'] == 3
+    assert scored['I1'] == pytest.approx(3 * 3 * np.degrees(0.01) / 3)
+
+
+def test_ddarm_score_names_each_bad_bag_and_scores_the_others(tmp_path, capsys):
+    bad_spec = synthetic_bag(tmp_path / 'bad_spec', episode=_spec_with(gain_schedule=True))
+    good = synthetic_bag(tmp_path / 'good')
+    bad_reference = synthetic_bag(tmp_path / 'bad_reference', change_reference=_nan_nominal)
+    bad_stamp = synthetic_bag(tmp_path / 'bad_stamp', change_state=_between_samples)
+    assert main(['score', str(bad_spec), str(good), str(bad_reference), f'{bad_stamp}/', '--json']) == 2
+    captured = capsys.readouterr()
+    assert [json.loads(line)['bag'] for line in captured.out.splitlines()] == [str(good)]
+    errors = captured.err.splitlines()
+    assert len(errors) == 3 and 'Traceback' not in captured.err
+    assert errors[0].startswith(f'ddarm score: {bad_spec}: /ddarm/episode holds a spec that cannot be run')
+    assert errors[1].startswith(f'ddarm score: {bad_reference}: /reference: reference point 1: effort is not finite')
+    assert errors[2].startswith(f'ddarm score: {bad_stamp}: /joint_states: stamp')

@@ -291,11 +291,15 @@ def test_bad_per_episode_options_are_refused_with_the_problem_named(options, pro
         simulate_batch(EpisodeSpec(**CT_15), [[225.0] * 3] * 2, [[30.0] * 3] * 2, **options)
 
 
-def test_per_episode_tau_with_a_given_plan_is_refused():
+def test_per_episode_tau_disturbs_the_given_plans_own_motion_never_the_paper_trajectory():
     spec = EpisodeSpec(**CT_15)
-    plan = plan_motion(spec, ProgrammedMotion(np.zeros(3), np.ones(3), 1.0), np.arange(101) * 0.01)
+    motion = ProgrammedMotion(np.zeros(3), np.ones(3), 1.0)
+    plan = plan_motion(spec, motion, np.arange(101) * 0.01)
+    batch = simulate_batch(spec, [[225.0] * 3], [[30.0] * 3], tau=[0.1], plan=plan, series=True)
+    np.testing.assert_array_equal(batch.v[0, 0], -motion.sample(0.1)[1])
+    recorded = dataclasses.replace(plan, motion=None)  # a plan read back from a bag knows no motion
     with pytest.raises(BatchError, match='tau'):
-        simulate_batch(spec, [[225.0] * 3], [[30.0] * 3], tau=[0.1], plan=plan)
+        simulate_batch(spec, [[225.0] * 3], [[30.0] * 3], tau=[0.1], plan=recorded)
 
 
 def test_bad_template_plant_options_are_refused_as_run_episode_refuses_them():

@@ -1,14 +1,17 @@
 """The in-process episode runner against the paper's analysis (spec §5–8)."""
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
 
 from ddarm.control.gains import computed_torque_error_external
+from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
 from ddarm.motion.programmed import paper_trajectory
 from ddarm.episodes.engine import run_episode
+from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, plan_episode, plan_motion
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
@@ -133,3 +136,72 @@ def test_bad_specs_are_refused(change, problem):
 def test_bad_gains_and_plant_options_are_refused(change, problem):
     with pytest.raises(ValueError, match=problem):
         run_episode(EpisodeSpec(**{**CT_15, **change}))
+
+
+# Recorded samples: the one rule that turns them into a scored episode ---------------------------------------------
+
+def recorded(result):
+    """What a recording of `result` holds: states n = 0 … (with the torque applied over n - 1) and commands."""
+    q, v, command, torque = (result.scored(name) for name in ('q', 'v', 'command', 'torque'))
+    count = len(torque)
+    states = {n: (q[n], v[n], None if n == 0 else torque[n - 1]) for n in range(count)}
+    # The state the last scored period ends in: a position (or none, if the plant diverged) and the torque held.
+    states[count] = (None, None, torque[-1]) if result.diverged[0] else (q[-1] + 0.1, v[-1], torque[-1])
+    return states, {n: command[n] for n in range(count)}
+
+
+def test_recorded_samples_score_as_the_episode_that_made_them():
+    result = run_episode(EpisodeSpec(**PD_10, delay=0, tau=0.1, torque_limit='paper'))
+    states, commands = recorded(result)
+    again = Episodes.from_recorded(result.template, result.plan, states, commands, plant_report={'ticks': 101})
+    for key in ('I1', 'I2', 'I'):
+        assert again.indices()[key] == pytest.approx(result.indices()[key], rel=1e-12)
+    assert not again.diverged[0] and again.samples_scored[0] == result.plan.k_max + 1
+    np.testing.assert_array_equal(again.scored('torque'), result.scored('torque'))
+    assert again.plant_report == {'ticks': 101}
+
+
+def test_a_recorded_divergence_is_scored_on_the_samples_before_it():
+    result = run_episode(EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3, delay=1))
+    states, commands = recorded(result)
+    states[int(result.diverged_at[0]) + 5] = (None, None, None)  # later states are not scored
+    again = Episodes.from_recorded(result.template, result.plan, states, commands)
+    assert again.diverged_at[0] == result.diverged_at[0] and again.samples_scored[0] == result.samples_scored[0]
+    for key in ('I1', 'I2', 'I'):
+        assert again.indices()[key] == pytest.approx(result.indices()[key], rel=1e-12)
+
+
+def test_missing_recorded_samples_are_named():
+    result = run_episode(EpisodeSpec(**CT_15))
+    states, commands = recorded(result)
+    del commands[5], states[7]
+    with pytest.raises(RecordingError, match=re.escape(
+            'the states (position and velocity) of samples [7]; the torques applied over samples [6] (each the '
+            'effort of the next state); the commands of samples [5] are missing: the episode is incomplete')) as error:
+        Episodes.from_recorded(result.template, result.plan, states, commands)
+    assert error.value.samples == [5, 6, 7]
+    assert isinstance(error.value, DdarmError)
+    states, commands = recorded(result)
+    states[0] = (None, None, None)  # no position at sample 0 is a missing state, not a divergence
+    with pytest.raises(RecordingError, match=re.escape('the states (position and velocity) of samples [0] are')):
+        Episodes.from_recorded(result.template, result.plan, states, commands)
+
+
+@pytest.mark.parametrize('name, rows', [('q', 5), ('v', 2), ('command', 6), ('torque', 3)])
+def test_samples_of_different_lengths_are_refused(name, rows):
+    result = run_episode(EpisodeSpec(**CT_15))
+    series = {key: result.scored(key)[:4] for key in ('q', 'v', 'command', 'torque')}
+    series[name] = result.scored(name)[:rows]
+    with pytest.raises(RecordingError, match=f"same number of samples.*'{name}': \\({rows}, 3\\)"):
+        Episodes.from_samples(result.template, result.plan, **series)
+
+
+def test_more_samples_than_the_plan_or_other_joints_are_refused():
+    result = run_episode(EpisodeSpec(**CT_15))
+    too_many = {key: np.vstack([result.scored(key), result.scored(key)[:1]])
+                for key in ('q', 'v', 'command', 'torque')}
+    with pytest.raises(RecordingError, match='at most k_max \\+ 1 = 101'):
+        Episodes.from_samples(result.template, result.plan, **too_many)
+    two_joints = {key: result.scored(key)[:, :2] for key in ('q', 'v', 'command', 'torque')}
+    with pytest.raises(RecordingError, match=r'shape \(samples, 3\)'):
+        Episodes.from_samples(result.template, result.plan, **two_joints)

@@ -58,3 +58,24 @@ def test_indices_broadcast_over_a_batch():
 def test_a_joint_without_nominal_torque_cannot_be_weighed():
     with pytest.raises(IndicesError, match='nonzero'):
         torque_weights(np.array([[1.0, 0.0], [2.0, 0.0]]))
+
+
+@pytest.mark.parametrize('change, refused', [
+    (dict(torque=np.zeros((2, 2))), r'q and torque must have the same shape .*q \(3, 2\), torque \(2, 2\)'),
+    (dict(q=np.zeros((4, 2)), torque=np.zeros((4, 2))), r'4 scored samples, more than q_ref and nominal hold'),
+    (dict(nominal=np.ones((2, 2))), r'3 scored samples, more than q_ref and nominal hold.*nominal \(2, 2\)'),
+    (dict(q=np.zeros((3, 3)), torque=np.zeros((3, 3))), r'the same joint count, got q_ref \(3, 2\), q \(3, 3\)'),
+    (dict(nominal=np.ones((3, 3))), r'the same joint count.*nominal \(3, 3\)'),
+    (dict(q=np.zeros(3)), r'shape \(samples, joints\), got q_ref \(3, 2\), q \(3,\)'),
+])
+def test_series_the_compiled_sums_would_read_out_of_bounds_are_refused(change, refused):
+    # The compiled loop does no bounds checks: mismatched series are refused by their shapes first.
+    series = dict(q_ref=np.zeros((3, 2)), q=np.zeros((3, 2)), torque=np.zeros((3, 2)), nominal=np.ones((3, 2)))
+    with pytest.raises(IndicesError, match=refused):
+        score_series(**{**series, **change}, k_max=2)
+
+
+def test_fewer_scored_samples_than_the_reference_are_scored():
+    q_ref, nominal = np.zeros((3, 2)), np.ones((3, 2))
+    indices = score_series(q_ref, q_ref[:1] - np.pi / 180, nominal[:1], nominal, k_max=2)
+    assert indices['I1'] == pytest.approx(1.0)

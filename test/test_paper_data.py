@@ -13,8 +13,9 @@ import pytest
 import yaml
 
 from ddarm.paper.claims import judge_claims
-from ddarm.paper.schema import Claim, GainSet, OmegaProcedureRow, Results, ResultsError, StabilityRow, TauRow
-from ddarm.paper.settings import SETTINGS_PATH, Budget, Case, SettingsError, load_settings, paper_settings
+from ddarm.paper.schema import (SCHEMA_VERSION, Claim, GainSet, OmegaProcedureRow, Results, ResultsError, StabilityRow,
+                                TauRow)
+from ddarm.paper.settings import SETTINGS_PATH, Budget, Case, Range, SettingsError, load_settings, paper_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 CONTROLLERS = ('pd_gravity', 'computed_torque')
@@ -66,9 +67,13 @@ def test_the_settings_hold_what_the_code_held():
     assert (settings.stability.omega, settings.stability.claimed_period) == (15.0, 0.01)
     assert Budget.full() == Budget(search_episodes=4000, cma_popsize=64, taus=TAUS)
     assert Budget.quick() == Budget(search_episodes=400, cma_popsize=16, taus=(0.0, 0.05, 0.1))
+    assert settings.claims.table4_I1_ratio == Range(1.5, 4.0)  # what claims.py held before it was data
     assert len(settings.reconstruction) == 8
     assert settings.reconstruction[1].startswith("Trajectory 1 starts at q = (0, π/3, -2π/3), the end at (1, 0, 0) "
-                                                 "(MODEL.md 4); the paper's Fig. 4 is lost. Trajectory 2")
+                                                 "(docs/model-specification.md §4); the paper's Fig. 4 is lost. "
+                                                 "Trajectory 2")
+    # The report cites the repository's specification, never the MODEL.md it is not in.
+    assert not any('MODEL.md' in note for note in settings.reconstruction)
 
 
 def test_the_settings_are_frozen_all_the_way_down():
@@ -114,6 +119,40 @@ def _edit(document: dict, key: str, value) -> None:
     ('omega_procedure.pd_gravity.disturbance.friction', [0.0] * 3,
      "omega_procedure.pd_gravity.disturbance.friction (a key) must be one of ('external_torque', 'mass_scale')"),
     ('reconstruction[2]', 7, 'reconstruction[2] must be str'),
+    # What the run would refuse only deep into a reproduction, refused when the settings load:
+    ('stability.periods', [0.005, 0.01, 0.03],
+     'stability.periods[2]: duration 1.0 s is not a whole number of sampling periods 0.03 s'),
+    ('stability.periods', [0.005, 0.01, 0.01], "the stability.periods give two episodes the bag name(s) ['dt0.01']"),
+    ('stability.periods', [0.01, -0.02], 'stability.periods[1] must be finite and positive, got -0.02'),
+    ('table4[2].case.T', 0.505, 'table4[2].case: duration 0.505 s is not a whole number of sampling periods 0.01 s'),
+    ('table4[1].case.period', 0.0, 'table4[1].case.period must be finite and positive, got 0.0'),
+    ('table4[3].case.T', float('inf'), 'table4[3].case.T must be finite and positive, got inf'),
+    ('table4[3].case', {'trajectory': 1, 'T': 1.0, 'period': 0.02},
+     "the table4 cases give two episodes the bag name(s) ['traj1-T1-dt0.02']"),
+    ('delays.computed_torque', 1000, 'delays.computed_torque: compute delay must be a whole number of samples in '
+                                     '[0, 100], got 1000'),
+    ('delays.pd_gravity', -1, 'delays.pd_gravity: compute delay'),
+    ('taus[9]', 5.0, 'taus[9]: tau must be within [0, T = 1.0] s, got 5.0'),
+    ('taus[3]', 0.001, "the taus give two episodes the bag name(s) ['tau0.00']"),
+    ('omega_rules.pd_gravity', 0.0, 'omega_rules.pd_gravity must be finite and positive, got 0.0'),
+    ('omega_rules.computed_torque', -15.0, 'omega_rules.computed_torque must be finite and positive, got -15.0'),
+    ('stability.omega', 0.0, 'stability.omega must be finite and positive, got 0.0'),
+    ('stability.claimed_period', 0.0, 'stability.claimed_period must be finite and positive'),
+    ('omega_procedure.computed_torque.max_error_deg', -0.5,
+     'omega_procedure.computed_torque.max_error_deg must be finite and positive, got -0.5'),
+    ('omega_procedure.pd_gravity.disturbance.mass_scale', [1.0, -1.1, 1.1], 'omega_procedure.pd_gravity.disturbance: '),
+    ('omega_procedure.computed_torque.disturbance', {'external_torque': [0.0, 0.0, 0.0]},
+     "omega_procedure.computed_torque.disturbance {'external_torque': (0.0, 0.0, 0.0)} causes no steady-state error"),
+    ('budgets.quick.search_episodes', 104, 'budgets.quick.search_episodes must be at least 105 (a third for '
+                                           'Nelder-Mead: a simplex of 7 points for each of the 5 ω-rule starts'),
+    ('budgets.quick.cma_popsize', 300, 'budgets.quick.search_episodes must be at least 451'),
+    ('budgets.full.cma_popsize', 1, 'budgets.full.cma_popsize must be at least 2, got 1'),
+    ('budgets.quick.taus', [], 'budgets.quick.taus must hold at least one τ'),
+    ('budgets.full.search_episodes', 10**400, 'budgets.full.search_episodes is an integer beyond the range of a float'),
+    ('stability.omega', -10**400, 'stability.omega is an integer beyond the range of a float'),
+    ('claims', ..., "missing key 'claims'"),
+    ('claims.table4_I1_ratio.high', 1.0, 'claims.table4_I1_ratio.high must be finite and at least low = 1.5, got 1.0'),
+    ('claims.table4_I1_ratio.low', 0.0, 'claims.table4_I1_ratio.low must be finite and positive, got 0.0'),
 ])
 def test_bad_settings_are_refused_naming_the_file_and_the_key(tmp_path, key, value, named):
     document = yaml.safe_load(SETTINGS_PATH.read_text())
@@ -134,6 +173,54 @@ def test_a_settings_key_given_twice_is_refused(tmp_path):
 
 def test_the_settings_file_as_written_loads_as_the_default():
     assert load_settings(SETTINGS_PATH) == paper_settings()
+
+
+def test_a_case_on_a_trajectory_without_a_motion_file_is_refused(tmp_path):
+    document = yaml.safe_load(SETTINGS_PATH.read_text())
+    document['table4'].append({'case': {'trajectory': 9, 'T': 1.0, 'period': 0.01},
+                               'paper': document['table4'][0]['paper']})
+    path = tmp_path / 'settings.yaml'
+    path.write_text(yaml.safe_dump(document, allow_unicode=True))
+    with pytest.raises(SettingsError, match=r'table4\[4\]\.case\.trajectory must be one of \[1, 2\], got 9'):
+        load_settings(path)
+
+
+def test_the_smallest_budget_is_the_one_the_search_accepts(tmp_path):
+    """The settings' minimum search budget is a third for Nelder-Mead: three times what search_gains accepts."""
+    import re
+
+    from ddarm.control.gains import SEARCH_START_OMEGAS
+    from ddarm.episodes.spec import EpisodeSpec
+    from ddarm.tuning.search import SearchError, omega_starts, search_gains
+
+    document = yaml.safe_load(SETTINGS_PATH.read_text())
+    document['budgets']['quick']['search_episodes'] = 1
+    path = tmp_path / 'settings.yaml'
+    path.write_text(yaml.safe_dump(document, allow_unicode=True))
+    with pytest.raises(SettingsError) as refused:
+        load_settings(path)
+    least = int(re.search(r'must be at least (\d+)', str(refused.value))[1])
+    template = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3)
+    start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
+    with pytest.raises(SearchError) as search_refused:  # refused before any episode runs
+        search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv, budget=0, method='nelder-mead')
+    assert least == 3 * int(re.search(r'at least (\d+) episodes', str(search_refused.value))[1]) == 105
+    document['budgets']['quick']['search_episodes'] = least
+    path.write_text(yaml.safe_dump(document, allow_unicode=True))
+    assert load_settings(path).budgets.quick.search_episodes == least
+
+
+@pytest.mark.parametrize('text, named', [
+    ('? [a, b]\n: 1\n', "unknown key \"? ['a', 'b']\""),
+    ('delays: {? [pd_gravity]: 0, computed_torque: 1}\n', "delays.? ['pd_gravity'] (a key) must be one of"),
+])
+def test_a_complex_key_in_the_settings_is_refused_naming_it(tmp_path, text, named):
+    plain = 'delays: {pd_gravity: 0, computed_torque: 1}\n'
+    path = tmp_path / 'settings.yaml'
+    path.write_text(SETTINGS_PATH.read_text().replace(plain, '') + text + (plain if text.startswith('?') else ''))
+    with pytest.raises(SettingsError) as refused:
+        load_settings(path)
+    assert str(refused.value).startswith(f'{path}: ') and named in str(refused.value), str(refused.value)
 
 
 # The results schema ------------------------------------------------------------------------
@@ -177,7 +264,8 @@ def results_json() -> dict:
                        'I1_at_omega_15': 43 * period, 'diverged_at_omega_15': False, 'bag': 'bags/s'}
                       for period in (0.005, 0.01, 0.05)],
     }
-    return {'command': 'ddarm reproduce --quick', 'quick': True, 'started': '2026-12-01T09:36:23+0000',
+    return {'schema_version': 1, 'command': 'ddarm reproduce --quick', 'quick': True,
+            'started': '2026-12-01T09:36:23+0000',
             'settings': {'paper_delays': {'pd_gravity': 0, 'computed_torque': 1}, 'search_budget': 30,
                          'cma_popsize': 16, 'taus': [0.0, 0.1], 'start_omegas': [8.0, 15.0]},
             'gains': gains, 'table2': table2, 'table3': table3, 'table4': table4, 'section2': section2,
@@ -197,8 +285,8 @@ def test_results_json_reads_and_writes_back_key_for_key_in_order():
 def test_the_schema_has_the_documented_keys():
     fields = {kind: [field.name for field in dataclasses.fields(kind)]
               for kind in (Results, GainSet, TauRow, StabilityRow, Claim)}
-    assert fields[Results] == ['command', 'quick', 'started', 'settings', 'gains', 'table2', 'table3', 'table4',
-                               'section2', 'reconstruction', 'claims', 'wall_time_s']
+    assert fields[Results] == ['schema_version', 'command', 'quick', 'started', 'settings', 'gains', 'table2',
+                               'table3', 'table4', 'section2', 'reconstruction', 'claims', 'wall_time_s']
     assert fields[TauRow] == ['controller', 'tau', 'limited', 'gains', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque',
                               'torque_limit', 'within_limits', 'bag', 'paper']
     assert fields[GainSet] == ['name', 'controller', 'index', 'trajectory', 'T', 'period', 'delay', 'kp', 'kv',
@@ -233,6 +321,11 @@ def test_the_schema_has_the_documented_keys():
      "table4[5].gains names 'pd_gravity-3.2-traj1-T1-dt0.01', which is not in results.gains"),
     (lambda data: data['gains'][2].update(name=data['gains'][1]['name']), 'gains[2].name'),
     (lambda data: data.update(section2=[]), 'section2 must be a mapping'),
+    (lambda data: data.pop('schema_version'), "missing key 'schema_version'"),
+    (lambda data: data.update(schema_version=2), 'schema_version is 2: this ddarm reads results.json of '
+                                                 'schema_version 1 only'),
+    (lambda data: data.update(schema_version='1'), "schema_version is '1'"),
+    (lambda data: data.update(schema_version=True), 'schema_version is True'),
 ])
 def test_results_off_the_schema_are_refused_naming_the_key(edit, named):
     data = results_json()
@@ -240,6 +333,21 @@ def test_results_off_the_schema_are_refused_naming_the_key(edit, named):
     with pytest.raises(ResultsError) as refused:
         Results.from_json(data, 'runs/x/results.json')
     assert str(refused.value).startswith('runs/x/results.json: ') and named in str(refused.value), str(refused.value)
+
+
+def test_results_are_written_with_their_schema_version_first():
+    results = Results(command='ddarm reproduce', quick=True, started='now', settings=Results.from_json(
+        results_json()).settings)
+    assert SCHEMA_VERSION == 1 and list(results.to_json())[0] == 'schema_version'
+    assert results.to_json()['schema_version'] == 1
+
+
+def test_another_versions_keys_are_refused_by_the_version_not_by_a_key():
+    data = results_json()
+    data.update(schema_version=2, table5=[])
+    del data['table2']
+    with pytest.raises(ResultsError, match='schema_version is 2'):
+        Results.from_json(data, 'old.json')
 
 
 def test_a_results_file_that_is_not_json_is_refused_naming_it(tmp_path):

@@ -105,3 +105,18 @@ def test_a_period_is_the_reference_rk4_on_pinocchios_aba(arm):
         np.testing.assert_allclose(plant.q, q, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(plant.v, v, rtol=1e-12, atol=1e-12)
     assert plant.sample == 20
+
+
+@pytest.mark.parametrize('command', [[1.0, 2.0], [[1.0, 2.0, 3.0]], [1.0, 2.0, 3.0, 4.0], 5.0, 'strong'])
+def test_a_misshapen_command_is_refused_before_the_compiled_clamp(arm, command):
+    plant = make_plant(arm, torque_limit=[10.0, 20.0, 30.0])
+    with pytest.raises(PlantError, match='sample 0: command must be 3 numbers'):
+        plant.saturate(command)
+
+
+def test_saturation_passes_a_nan_through_for_advance_to_refuse(arm):
+    plant = make_plant(arm, torque_limit=[10.0, 20.0, 30.0])
+    applied = plant.saturate([np.nan, 50.0, -50.0])
+    np.testing.assert_array_equal(applied, [np.nan, 20.0, -30.0])
+    with pytest.raises(PlantError, match='finite'):
+        plant.advance(applied)

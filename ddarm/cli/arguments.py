@@ -20,7 +20,7 @@ def finite(text: str) -> float:
 
 
 def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
-    """The options that define an episode (MODEL.md's defaults); `gains` adds --omega / --kp --kv."""
+    """The options that define an episode (the spec's defaults, §14); `gains` adds --omega / --kp --kv."""
     parser.add_argument('--controller', choices=CONTROLLERS, required=True)
     parser.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES, default=1)
     parser.add_argument('--duration', type=finite, default=1.0, metavar='T', help='T in s (default 1)')

@@ -20,7 +20,7 @@ from ddarm.cli.tune import command_tune, index_name
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
-from ddarm.episodes.bench import add_bench_parser
+from ddarm.cli.bench import add_bench_parser
 from ddarm.interrupts import Interrupted, stop_on_signals
 
 

@@ -5,20 +5,25 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from ddarm.cli.output import print_summary
 
 
 def command_score(args: argparse.Namespace) -> int:
+    """Score each bag; a bag that cannot be scored is named on stderr and the others still scored (exit 2)."""
+    from ddarm.errors import DdarmError
     from ddarm.recording.bags import BagError, score_bag
 
     failures = 0
     for bag in args.bags:
         try:
             summary = score_bag(bag)
-        except BagError as error:
+        except DdarmError as error:
             failures += 1
-            print(f'ddarm score: {error}', file=sys.stderr)
+            # score_bag's BagErrors name the bag already; any other refusal is named here.
+            named = isinstance(error, BagError) and str(error).startswith(f'{Path(bag)}: ')
+            print(f'ddarm score: {error if named else f"{bag}: {error}"}', file=sys.stderr)
             continue
         if args.json:
             print(json.dumps(summary))

@@ -1,8 +1,8 @@
 """Gains from the simplified models of section 2: the ω rules and the steady-state errors (spec §6).
 
-Sign convention: MODEL.md (1.1) adds P^z to the actuator torque, M q̈ + V + G + F = P + P^z.
+Sign convention: spec §3's (1.1) adds P^z to the actuator torque, M q̈ + V + G + F = P + P^z.
 The paper writes the external-torque error as K_p e = M⁻¹(q_f) P^z, which holds for P^z
-on the load side of (1.1); under MODEL.md's convention the same error has the opposite
+on the load side of (1.1); under the spec's convention the same error has the opposite
 sign. Only magnitudes enter the ω procedure, so both give the same ω.
 """
 
@@ -57,7 +57,7 @@ def omega_rule_computed_torque(dof: int, omega) -> tuple[np.ndarray, np.ndarray]
 
 def computed_torque_error_external(mass_matrix_final: np.ndarray, kp: np.ndarray,
                                    external_torque: np.ndarray) -> np.ndarray:
-    """Steady-state e under a constant P^z: K_p e = -M⁻¹(q_f) P^z (the paper's formula, MODEL.md's sign)."""
+    """Steady-state e under a constant P^z: K_p e = -M⁻¹(q_f) P^z (the paper's formula, the spec's sign, §6.2)."""
     return -np.linalg.solve(mass_matrix_final, external_torque) / kp
 
 

@@ -18,8 +18,7 @@ from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
 from ddarm.physics.dynamics import COMPILED, Chain, inverse_dynamics, joint_transforms, workspace
 
-CONTROLLERS = ('pd_gravity', 'computed_torque')
-PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each of CONTROLLERS
+PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each law
 MAX_DELAY = 100
 
 
@@ -88,17 +87,25 @@ def computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, 
             command[i, b] += viscous_friction[i] * vm[i, b] + coulomb_friction[i] * np.sign(vm[i, b])
 
 
+@numba.njit(**COMPILED, inline='always')
+def law_command(controller, chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
+                viscous_friction, coulomb_friction, work, commanded_acceleration, command, lanes):
+    """The command of the law coded `controller` (a law class's `code`) for every lane."""
+    if controller == PD_GRAVITY:
+        pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, lanes)
+    else:
+        computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm, viscous_friction,
+                        coulomb_friction, work, commanded_acceleration, command, lanes)
+
+
 @numba.njit(**COMPILED)
 def _command_one(controller, chain, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
                  viscous_friction, coulomb_friction):
     """One episode's command, its workspace made here: the controller node's step."""
     n = qm.shape[0]
     command = np.empty((n, 1))
-    if controller == PD_GRAVITY:
-        pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, 1)
-    else:
-        computed_torque(chain, np.ones((n, 1)), kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm,
-                        viscous_friction, coulomb_friction, workspace(n, 1), np.empty((n, 1)), command, 1)
+    law_command(controller, chain, np.ones((n, 1)), kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm,
+                vm, viscous_friction, coulomb_friction, workspace(n, 1), np.empty((n, 1)), command, 1)
     return command[:, 0]
 
 
@@ -161,10 +168,16 @@ def _column(values) -> np.ndarray:
 
 
 class _Law:
-    """A law on the controller's model (`chain`), with gains that are replaced only by valid ones."""
+    """A law on the controller's model (`chain`), with gains that are replaced only by valid ones.
+
+    Each law says what it needs besides the state: `gravity_feedforward`, Ĝ(q^d) computed off-line;
+    `model_friction`, the model's F̂ (the plant's friction, spec §5).
+    """
 
     code = PD_GRAVITY
     name = ''
+    gravity_feedforward = False
+    model_friction = False
 
     def __init__(self, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None) -> None:
         self.chain = chain
@@ -184,7 +197,7 @@ class _Law:
 
         PD + gravity needs `gravity_ref`, Ĝ(q^d(t_n)) from `gravity_feedforward`; computed torque ignores it.
         """
-        if self.code == PD_GRAVITY and gravity_ref is None:
+        if self.gravity_feedforward and gravity_ref is None:
             raise GainError('PD + gravity needs the gravity feedforward Ĝ(q^d(t_n)) (gravity_feedforward)')
         return _command_one(self.code, self._arrays, _column(self.kp), _column(self.kv),
                             np.asarray(measured.q_ref, dtype=float), np.asarray(measured.v_ref, dtype=float),
@@ -198,6 +211,7 @@ class PDGravityLaw(_Law):
 
     code = PD_GRAVITY
     name = 'pd_gravity'
+    gravity_feedforward = True
 
 
 class ComputedTorqueLaw(_Law):
@@ -205,6 +219,7 @@ class ComputedTorqueLaw(_Law):
 
     code = COMPUTED_TORQUE
     name = 'computed_torque'
+    model_friction = True
 
 
 class SampledController:
@@ -232,19 +247,24 @@ class SampledController:
         self.buffer.clear()
 
 
+# Every law by its name: the one list the engine, the nodes and the CLI read.
+LAWS = {law.name: law for law in (PDGravityLaw, ComputedTorqueLaw)}
+CONTROLLERS = tuple(LAWS)
+
+
 def make_law(controller: str, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None):
     """The law named `controller` (one of CONTROLLERS) on the controller's model."""
-    if controller == 'pd_gravity':
-        return PDGravityLaw(chain, kp, kv)
-    if controller == 'computed_torque':
-        return ComputedTorqueLaw(chain, kp, kv, viscous_friction, coulomb_friction)
-    raise GainError(f'controller must be one of {CONTROLLERS}, got {controller!r}')
+    if controller not in LAWS:
+        raise GainError(f'controller must be one of {CONTROLLERS}, got {controller!r}')
+    law = LAWS[controller]
+    if law.model_friction:
+        return law(chain, kp, kv, viscous_friction, coulomb_friction)
+    return law(chain, kp, kv)
 
 
 def warm_up(chain: Chain) -> None:
     """Load both compiled laws (from numba's cache, or compile them) now, not at an episode's first sample."""
     dof = chain.dof
-    point = Measurement(np.zeros(dof), np.zeros(dof), np.zeros(dof), np.zeros(dof))
-    for law in (PDGravityLaw, ComputedTorqueLaw):
-        law(chain, np.ones(dof), np.ones(dof)).torque(point, ReferencePoint(np.zeros(dof), np.zeros(dof), np.zeros(dof)),
-                                                      np.zeros(dof))
+    zero, one = np.zeros(dof), np.ones(dof)
+    for law in LAWS.values():
+        law(chain, one, one).torque(Measurement(zero, zero, zero, zero), ReferencePoint(zero, zero, zero), zero)

@@ -1,10 +1,8 @@
-"""`ddarm bench`: the batch engine at B episodes per call against one episode per call (`run_episode`), in episodes/s."""
+"""`ddarm bench`: the batch engine at B episodes per call against one per call (`run_episode`), in episodes/s."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import os
 import resource
 import time
@@ -54,10 +52,10 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
     batch_time = time.perf_counter() - started
     compared = min(episodes, scalar_episodes)
     started = time.perf_counter()
-    scalar = [run_episode(dataclasses.replace(REFERENCE, kp=kp[member], kv=kv[member])) for member in range(compared)]
-    scalar_time = time.perf_counter() - started
+    alone = [run_episode(dataclasses.replace(REFERENCE, kp=kp[member], kv=kv[member])) for member in range(compared)]
+    alone_time = time.perf_counter() - started
     largest, disagreements = 0.0, 0
-    for member, result in enumerate(scalar):
+    for member, result in enumerate(alone):
         for key, value in result.indices().items():
             largest = max(largest, abs(batch.indices(member)[key] - value) / abs(value))
         disagreements += int(bool(batch.diverged[member]) != bool(result.diverged[0]))
@@ -66,56 +64,9 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
         'gain_spread': GAIN_SPREAD, 'seed': seed, 'substeps': REFERENCE.substeps,
         'B': episodes, 'threads': threads, 'diverged': int(batch.diverged.sum()),
         'batch_s': batch_time, 'batch_episodes_per_s': episodes / batch_time,
-        'scalar_episodes': compared, 'scalar_s': scalar_time, 'scalar_episodes_per_s': compared / scalar_time,
-        'ratio': (episodes / batch_time) / (compared / scalar_time),
+        'scalar_episodes': compared, 'scalar_s': alone_time, 'scalar_episodes_per_s': compared / alone_time,
+        'ratio': (episodes / batch_time) / (compared / alone_time),
         'max_rel_index_diff': largest, 'divergence_disagreements': disagreements,
         'warmup_s': warmup, 'peak_rss_mib': peak_rss_mib(),
     }
 
-
-def _count(name: str):
-    """An argparse type: a whole number in [1, batch.<name>]."""
-    def parse(text: str) -> int:
-        from ddarm.episodes import engine as batch
-
-        largest = getattr(batch, name)
-        value = int(text)
-        if not 1 <= value <= largest:
-            raise argparse.ArgumentTypeError(f'{value} is not in [1, {largest}]')
-        return value
-    return parse
-
-
-def command_bench(args: argparse.Namespace) -> int:
-    figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads)
-    if args.json:
-        print(json.dumps(figures))
-        return 0
-    print(f"ddarm bench: {figures['case']}; gains x exp({GAIN_SPREAD} N(0, 1)) per episode (seed "
-          f"{figures['seed']}); {figures['substeps']} RK4 substeps")
-    print(f"  batch engine : {figures['B']:6d} episodes in {figures['batch_s']:7.3f} s = "
-          f"{figures['batch_episodes_per_s']:8.1f} episodes/s (one call; the first call, "
-          f"{figures['warmup_s']:.2f} s of compiling or cache loading, not counted)")
-    print(f"  scalar runner: {figures['scalar_episodes']:6d} episodes in {figures['scalar_s']:7.3f} s = "
-          f"{figures['scalar_episodes_per_s']:8.1f} episodes/s (the first {figures['scalar_episodes']} "
-          f"of the batch's episodes)")
-    print(f"  ratio        : {figures['ratio']:.1f} x")
-    print(f"  largest relative difference of I1, I2, I on the {figures['scalar_episodes']} episodes both ran: "
-          f"{figures['max_rel_index_diff']:.2e}; divergence flags disagree on "
-          f"{figures['divergence_disagreements']}")
-    print(f"  peak RSS     : {figures['peak_rss_mib']:.0f} MiB")
-    return 0
-
-
-def add_bench_parser(commands) -> None:
-    """Register `ddarm bench` on the `ddarm` command's subparsers."""
-    bench = commands.add_parser('bench', help='episodes per second of the batch engine and the scalar runner')
-    bench.add_argument('--episodes', type=_count('MAX_BATCH'), default=1000, metavar='N',
-                       help='episodes in the batch (1000)')
-    bench.add_argument('--scalar-episodes', type=_count('MAX_BATCH'), default=SCALAR_EPISODES, metavar='M',
-                       help=f'of them, how many the scalar runner also runs ({SCALAR_EPISODES})')
-    bench.add_argument('--seed', type=int, default=0, help='seed of the gain perturbation (0)')
-    bench.add_argument('--threads', type=_count('MAX_THREADS'), metavar='T',
-                       help='threads of the batch engine (the cores available)')
-    bench.add_argument('--json', action='store_true', help='print one JSON object')
-    bench.set_defaults(handler=command_bench)

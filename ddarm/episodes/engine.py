@@ -17,17 +17,16 @@ import numba
 import numpy as np
 
 from ddarm.arrays import per_episode
-from ddarm.control.laws import (CONTROLLERS, PD_GRAVITY, GainError, checked_gains, computed_torque, gravity_feedforward,
-                                measured_sample, pd_gravity)
+from ddarm.control.laws import CONTROLLERS, LAWS, GainError, checked_gains, gravity_feedforward, law_command, measured_sample
 from ddarm.control.laws import warm_up as laws_warm_up
 from ddarm.episodes.indices import accumulate, error_weights, score_series, torque_weights
 from ddarm.episodes.result import Episodes
-from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, check_episode, plan_episode
+from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, check_episode, plan_episode, plant_options
 from ddarm.errors import DdarmError
-from ddarm.motion.programmed import paper_trajectory
+from ddarm.motion.programmed import MotionError, disturbed_start
 from ddarm.physics.arm import load_arm
 from ddarm.physics.dynamics import COMPILED, load_chain, workspace
-from ddarm.physics.plant import PlantError, PlantOptions, advance, checked_mass_scale, saturate, step_workspace
+from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
 
 # Far beyond any batch an optimiser asks for; refused before anything is allocated.
@@ -85,11 +84,8 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
         ring_q[k % (delay + 1)], ring_v[k % (delay + 1)] = q, v
         measured = measured_sample(k, delay)
         qm, vm = ring_q[measured % (delay + 1)], ring_v[measured % (delay + 1)]
-        if controller == PD_GRAVITY:
-            pd_gravity(kp, kv, q_ref[measured], v_ref[measured], gravity_ref[k], qm, vm, command, lanes)
-        else:
-            computed_torque(chain, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], qm, vm,
-                            viscous_model, coulomb_model, law_work, commanded_acceleration, command, lanes)
+        law_command(controller, chain, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], gravity_ref[k],
+                    qm, vm, viscous_model, coulomb_model, law_work, commanded_acceleration, command, lanes)
         saturate(command, limit, applied, lanes)
         for b in range(lanes):
             if not running[b]:
@@ -139,19 +135,20 @@ def _batch_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
     return kp, kv
 
 
-def _initial_velocities(template: EpisodeSpec, plan: EpisodePlan, tau, size: int) -> np.ndarray:
-    """q̇(0) per member: the plan's, or (3.1) with spec §7's sign at each member's τ."""
+def _initial_velocities(plan: EpisodePlan, tau, size: int) -> np.ndarray:
+    """q̇(0) per member: the plan's, or the disturbance (3.1) of the plan's motion at each member's τ."""
     if tau is None:
         return np.broadcast_to(plan.v0, (size, len(plan.v0)))
     tau = np.array(tau, dtype=float)
     if tau.shape != (size,):
         raise BatchError(f'tau must have shape ({size},): one τ per episode, got shape {tau.shape}')
-    bad = ~(np.isfinite(tau) & (tau >= 0) & (tau <= template.duration))
-    if bad.any():
-        member = int(np.argmax(bad))
-        raise BatchError(f'tau must be within [0, T = {template.duration}] s: episode {member} has {tau[member]!r}')
-    _, v_at_tau, _ = paper_trajectory(template.trajectory, template.duration).sample(tau)
-    return -v_at_tau
+    if plan.motion is None:
+        raise BatchError('per-episode tau needs the plan\'s programmed motion: this plan (read back from a '
+                         'recording) has none')
+    try:
+        return disturbed_start(plan.motion, tau)[1]
+    except MotionError as error:
+        raise BatchError(str(error)) from error
 
 
 def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None, mass_scale=None,
@@ -166,14 +163,11 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     `mass_scale` (B, n) the plant's link masses against the controller's model. `series` also
     returns q, q̇, the commanded and the applied torque at every sample. `plan` (as from
     plan_episode or plan_motion) saves re-planning when the caller runs many batches of one
-    template; per-member τ needs the template's own paper trajectory, so it cannot be combined
-    with a given plan. `threads` (default: the cores this process may use) run the members in
-    parallel.
+    template; per-member τ disturbs the plan's own motion. `threads` (default: the cores this
+    process may use) run the members in parallel.
 
     Raises BatchError (a ValueError) naming the problem, before anything is simulated.
     """
-    if plan is not None and tau is not None:
-        raise BatchError('per-episode tau re-derives q̇(0) from the paper trajectory: pass no plan with it')
     plan = plan if plan is not None else plan_episode(template)
     chain = load_chain(template.urdf)
     dof = chain.dof
@@ -184,15 +178,12 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     if threads is not None and not (isinstance(threads, (int, np.integer)) and 1 <= threads <= MAX_THREADS):
         raise BatchError(f'threads must be a whole number in [1, {MAX_THREADS}], got {threads!r}')
     try:
-        options = PlantOptions(period=template.period, substeps=template.substeps,
-                               torque_limit=plan.torque_limit, viscous_friction=template.viscous_friction,
-                               coulomb_friction=template.coulomb_friction,
-                               external_torque=template.external_torque).checked(dof)
+        options = plant_options(template, plan, dof)
         if template.mass_scale is not None:
             checked_mass_scale(template.mass_scale, dof)
     except PlantError as error:
         raise BatchError(str(error)) from error
-    v0 = np.array(_initial_velocities(template, plan, tau, size), dtype=float, order='C')
+    v0 = np.array(_initial_velocities(plan, tau, size), dtype=float, order='C')
     varied = {}
     if tau is not None:
         varied['tau'] = np.array(tau, dtype=float)
@@ -214,12 +205,12 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     series_shape = (size, samples, dof) if series else (0, samples, dof)
     out_q, out_v, out_command, out_torque = (np.full(series_shape, np.nan) for _ in range(4))
     zero = np.zeros(dof)
-    gravity_ref = (gravity_feedforward(load_arm(template.urdf), plan.q_ref) if template.controller == 'pd_gravity'
+    law = LAWS[template.controller]
+    gravity_ref = (gravity_feedforward(load_arm(template.urdf), plan.q_ref) if law.gravity_feedforward
                    else np.zeros_like(plan.q_ref))
-    # The controller's model of friction F̂ is the plant's (computed torque only; spec §5).
+    # The controller's model of friction F̂ is the plant's (spec §5).
     compiled = options.compiled(dof)
-    viscous_model, coulomb_model = (compiled[1], compiled[2]) if template.controller == 'computed_torque' else (
-        zero, zero)
+    viscous_model, coulomb_model = (compiled[1], compiled[2]) if law.model_friction else (zero, zero)
     outcome = (np.zeros(size), np.zeros(size), np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64))
     members = (scale, kp, kv, v0, limit)
     episode = tuple(np.ascontiguousarray(array, dtype=float) for array in (
@@ -228,8 +219,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), size)
     # Chunks small enough that every thread gets one, large enough to amortise a compiled call.
     lanes = min(LANES, -(-size // threads))
-    controller = PD_GRAVITY if template.controller == 'pd_gravity' else 1 - PD_GRAVITY
-    arguments = (lanes, chain.arrays(), controller, int(template.delay), np.array(plan.q0, dtype=float), members,
+    arguments = (lanes, chain.arrays(), law.code, int(template.delay), np.array(plan.q0, dtype=float), members,
                  episode, compiled, series, (out_q, out_v, out_command, out_torque), outcome)
     if threads == 1:
         _run_chunks(0, 1, *arguments)

@@ -65,10 +65,22 @@ def score_series(q_ref: np.ndarray, q: np.ndarray, torque: np.ndarray, nominal: 
     """I1, I2 and I of one episode from its scored samples j = 0 … (shape (samples, n)), divided by k_max.
 
     R_i comes from the whole `nominal` series; q_ref and nominal may run past the scored samples.
+    IndicesError for series the compiled sums would read out of bounds: q and torque of different
+    shapes, more samples than q_ref or nominal hold, or joint counts that differ.
     """
     if k_max < 1:
         raise IndicesError(f'k_max must be at least 1, got {k_max}')
+    q_ref, q, torque, nominal = (np.asarray(x, dtype=float) for x in (q_ref, q, torque, nominal))
+    shapes = f'q_ref {q_ref.shape}, q {q.shape}, torque {torque.shape}, nominal {nominal.shape}'
+    if any(x.ndim != 2 for x in (q_ref, q, torque, nominal)):
+        raise IndicesError(f'every series must have shape (samples, joints), got {shapes}')
+    if q.shape != torque.shape:
+        raise IndicesError(f'q and torque must have the same shape (one row per scored sample), got {shapes}')
+    if len({x.shape[1] for x in (q_ref, q, torque, nominal)}) != 1:
+        raise IndicesError(f'every series must have the same joint count, got {shapes}')
     samples = len(q)
+    if samples > len(q_ref) or samples > len(nominal):
+        raise IndicesError(f'{samples} scored samples, more than q_ref and nominal hold, got {shapes}')
     error_sum, torque_sum = _sums(*(np.ascontiguousarray(x, dtype=float) for x in (
         q_ref[:samples], q, torque, nominal[:samples], error_weights(q.shape[-1]), torque_weights(nominal))))
     first, second = error_sum / k_max, torque_sum / k_max

@@ -3,12 +3,35 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from ddarm.episodes.indices import score_series
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
+from ddarm.errors import DdarmError
+
+# How many sample numbers a refusal lists, per kind of missing evidence.
+LISTED_SAMPLES = 10
+
+
+class RecordingError(DdarmError, ValueError):
+    """Recorded samples that do not make a scored episode; the text names the samples missing.
+
+    `samples` holds every sample index named. Callers re-raise it as their own error (the ROS
+    driver as GraphEpisodeError, the bag scorer as BagError naming the bag).
+    """
+
+    def __init__(self, message: str, samples: list[int] | None = None) -> None:
+        super().__init__(message)
+        self.samples = samples or []
+
+
+def _listed(samples: list[int]) -> str:
+    shown = samples[:LISTED_SAMPLES]
+    more = len(samples) - len(shown)
+    return f'{shown}' + (f' (and {more} more)' if more else '')
 
 
 @dataclass(frozen=True)
@@ -41,8 +64,17 @@ class Episodes:
     @classmethod
     def from_samples(cls, spec: EpisodeSpec, plan: EpisodePlan, q, v, command, torque,
                      diverged_at: int | None = None, plant_report: dict | None = None) -> Episodes:
-        """One recorded episode (B = 1) from its scored samples j = 0 …, scored by the indices' one definition."""
+        """One recorded episode (B = 1) from its scored samples j = 0 …, scored by the indices' one definition.
+
+        RecordingError unless q, v, command and torque are each (samples, n) for the plan's n joints,
+        with the same number of samples, at most k_max + 1.
+        """
         q, v, command, torque = (np.asarray(x, dtype=float) for x in (q, v, command, torque))
+        dof = plan.q_ref.shape[-1]
+        shapes = {'q': q.shape, 'v': v.shape, 'command': command.shape, 'torque': torque.shape}
+        if len(set(shapes.values())) != 1 or q.ndim != 2 or q.shape[1] != dof or len(q) > plan.k_max + 1:
+            raise RecordingError(f'q, v, command and torque must each have shape (samples, {dof}), the same '
+                                 f'number of samples, at most k_max + 1 = {plan.k_max + 1}; got {shapes}')
         indices = score_series(plan.q_ref, q, torque, plan.nominal, plan.k_max)
         shape = (1, plan.k_max + 1, q.shape[-1])
         padded = []
@@ -55,6 +87,45 @@ class Episodes:
                    diverged_at=np.array([-1 if diverged_at is None else diverged_at]),
                    samples_scored=np.array([len(torque)]), q=padded[0], v=padded[1], command=padded[2],
                    torque=padded[3], plant_report=plant_report)
+
+    @classmethod
+    def from_recorded(cls, spec: EpisodeSpec, plan: EpisodePlan, states: Mapping[int, tuple],
+                      commands: Mapping[int, np.ndarray], plant_report: dict | None = None) -> Episodes:
+        """One episode (B = 1) from what a recording holds by sample index n: the one rule for every recording.
+
+        states[n] = (q, v, effort): the state at t_n, and the torque the actuators applied over
+        [t_{n-1}, t_n) (None at n = 0); a state at n > 0 without a position (q None) says the plant
+        diverged during the period before t_n. commands[n]: what the law asked for at sample n.
+        States past sample k_max + 1 are not part of the episode.
+
+        The scored samples are j = 0 … k_max, or 0 … j - 1 for a plant that diverged at j
+        (diverged_at = j). Sample n's torque is the effort of state n + 1: the plant publishes the
+        torque it held over a period with the state that period ends in.
+
+        RecordingError names the samples missing: a state with position and velocity for each
+        scored sample, the next state's effort for each, and a command for each.
+        """
+        diverged_at = next((n for n in sorted(states) if 0 < n <= plan.k_max + 1 and states[n][0] is None), None)
+        last = plan.k_max if diverged_at is None else diverged_at - 1
+        scored = range(last + 1)
+
+        def has(n: int, field: int) -> bool:
+            return n in states and states[n][field] is not None
+
+        missing = {'the states (position and velocity) of samples {}': [
+                       n for n in scored if not (has(n, 0) and has(n, 1))],
+                   'the torques applied over samples {} (each the effort of the next state)': [
+                       n for n in scored if not has(n + 1, 2)],
+                   'the commands of samples {}': [n for n in scored if commands.get(n) is None]}
+        if any(missing.values()):
+            named = '; '.join(kind.format(_listed(samples)) for kind, samples in missing.items() if samples)
+            raise RecordingError(f'{named} are missing: the episode is incomplete',
+                                 sorted({n for samples in missing.values() for n in samples}))
+        return cls.from_samples(spec, plan, q=np.array([states[n][0] for n in scored]),
+                                v=np.array([states[n][1] for n in scored]),
+                                command=np.array([commands[n] for n in scored]),
+                                torque=np.array([states[n + 1][2] for n in scored]),
+                                diverged_at=diverged_at, plant_report=plant_report)
 
     @property
     def size(self) -> int:

@@ -9,10 +9,10 @@ import numpy as np
 from ddarm.control.gains import omega_rule_gains
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay, checked_gains
 from ddarm.errors import DdarmError
-from ddarm.motion.programmed import (ProgrammedMotion, nominal_torque, paper_torque_limit, paper_trajectory,
-                                     sample_count, sample_times)
+from ddarm.motion.programmed import (ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
+                                     paper_torque_limit, paper_trajectory, sample_count, sample_times)
 from ddarm.physics.arm import ModelError, load_arm
-from ddarm.physics.plant import DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale, disturbed_initial_state
+from ddarm.physics.plant import DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000
@@ -28,7 +28,7 @@ def _optional_tuple(values) -> tuple[float, ...] | None:
 
 @dataclass(frozen=True)
 class EpisodeSpec:
-    """Everything that defines an episode; its defaults are MODEL.md's (and the user's delay of 1)."""
+    """Everything that defines an episode; its defaults are the spec's (§14; and the user's delay of 1)."""
 
     controller: str
     kp: tuple[float, ...]
@@ -56,9 +56,8 @@ class EpisodeSpec:
                                f'got {self.torque_limit!r}')
         if self.controller not in CONTROLLERS:
             raise EpisodeError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
-        if not (np.isfinite(self.tau) and 0 <= self.tau <= self.duration):
-            raise EpisodeError(f'tau must be within [0, T = {self.duration}] s, got {self.tau!r}')
         try:
+            checked_tau(self.tau, self.duration)
             checked_delay(self.delay)
             if sample_count(self.duration, self.period) > MAX_SAMPLES:
                 raise EpisodeError(f'{self.duration} s at {self.period} s is more than {MAX_SAMPLES} samples')
@@ -81,6 +80,7 @@ class EpisodePlan:
     torque_limit: np.ndarray | None
     q0: np.ndarray
     v0: np.ndarray
+    motion: ProgrammedMotion | None = None  # None for a plan read back from a recording
 
     @property
     def k_max(self) -> int:
@@ -106,9 +106,8 @@ def plan_motion(spec: EpisodeSpec, motion: ProgrammedMotion, times: np.ndarray) 
         limit = paper_torque_limit(nominal)
     else:
         limit = np.array(spec.torque_limit)
-    _, v_at_tau, _ = motion.sample(spec.tau)
-    q0, v0 = disturbed_initial_state(q_ref[0], v_at_tau)
-    return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0)
+    q0, v0 = disturbed_start(motion, spec.tau)
+    return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0, motion)
 
 
 def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
@@ -122,15 +121,20 @@ def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
         raise EpisodeError(str(error)) from error
 
 
+def plant_options(spec: EpisodeSpec, plan: EpisodePlan, dof: int) -> PlantOptions:
+    """The plant options `spec` runs with (its torque limit resolved by `plan`), checked for a `dof`-joint arm."""
+    return PlantOptions(period=spec.period, substeps=spec.substeps, torque_limit=plan.torque_limit,
+                        viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
+                        external_torque=spec.external_torque).checked(dof)
+
+
 def check_episode(spec: EpisodeSpec) -> EpisodePlan:
     """Plan `spec` and check everything a run would refuse (gains, per-joint options), before any work starts."""
     plan = plan_episode(spec)
     dof = load_arm(spec.urdf).dof
     try:
         checked_gains(spec.kp, spec.kv, dof)
-        PlantOptions(period=spec.period, substeps=spec.substeps, torque_limit=plan.torque_limit,
-                     viscous_friction=spec.viscous_friction, coulomb_friction=spec.coulomb_friction,
-                     external_torque=spec.external_torque).checked(dof)
+        plant_options(spec, plan, dof)
         if spec.mass_scale is not None:
             checked_mass_scale(spec.mass_scale, dof)
     except (GainError, PlantError, ModelError) as error:

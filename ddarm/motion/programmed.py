@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -17,7 +18,7 @@ class MotionError(DdarmError, ValueError):
 
 
 # Sample instants land on T/2 and T only up to rounding (0.01 * 50): within this
-# relative distance of a phase boundary the later phase applies (spec §5).
+# relative distance of a phase boundary the later phase applies (spec §4).
 _PHASE_EDGE = 1e-9
 
 
@@ -58,26 +59,36 @@ class ProgrammedMotion:
         return position, velocity, acceleration
 
 
-# The paper's motions are data: ddarm/paper/data/trajectory-<number>.yaml (spec §4).
-_PAPER_MOTIONS = {int(path.stem.removeprefix('trajectory-')): path
-                  for path in (Path(__file__).resolve().parents[1] / 'paper' / 'data').glob('trajectory-*.yaml')}
+# The paper's motions are data: ddarm/paper/data/trajectory-<number>.yaml (spec §4), numbered from 1 without a
+# leading zero. Any other file there (`trajectory-x.yaml`, `trajectory-01.yaml`, an editor's backup) is no paper
+# motion and is ignored: only the names are read here, at import; a file is read when its motion is first used.
+_PAPER_MOTION_NAME = re.compile(r'trajectory-([1-9][0-9]*)\.yaml')
+_PAPER_MOTIONS = {int(match[1]): path
+                  for path in (Path(__file__).resolve().parents[1] / 'paper' / 'data').glob('trajectory-*.yaml')
+                  if (match := _PAPER_MOTION_NAME.fullmatch(path.name))}
 PAPER_TRAJECTORIES = tuple(sorted(_PAPER_MOTIONS))
 
 
 @lru_cache(maxsize=None)
-def _paper_motion(number: int) -> ProgrammedMotion:
+def _paper_motion(number: int):
+    """The motion file of trajectory `number` (a ddarm.motion.files.MotionFile), read once."""
     from ddarm.motion.files import load_motion  # files.py imports this module: a top-level import would be circular
 
-    return load_motion(_PAPER_MOTIONS[number]).motion
+    if number not in _PAPER_MOTIONS:
+        raise MotionError(f'trajectory must be one of {list(PAPER_TRAJECTORIES)}, got {number!r}')
+    return load_motion(_PAPER_MOTIONS[number])
 
 
 def paper_trajectory(number: int, duration: float) -> ProgrammedMotion:
-    """Trajectory 1 or 2 of the paper's section 3, of duration T."""
-    if number not in _PAPER_MOTIONS:
-        raise MotionError(f'trajectory must be one of {sorted(PAPER_TRAJECTORIES)}, got {number!r}')
-    motion = _paper_motion(number)
+    """Trajectory `number` (1 or 2) of the paper's section 3, of duration T."""
+    motion = _paper_motion(number).motion
     # Fresh arrays, as every call returned before the motions were files: a caller may change its copy.
     return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
+
+
+def paper_motion_joints(number: int) -> tuple[str, ...]:
+    """The joints trajectory `number` drives, by name, in the order of its positions (its file's joint_names)."""
+    return _paper_motion(number).joint_names
 
 
 def sample_count(duration: float, period: float) -> int:
@@ -96,6 +107,25 @@ def sample_times(duration: float, period: float) -> np.ndarray:
     return np.arange(sample_count(duration, period) + 1) * period
 
 
+def checked_tau(tau, duration: float) -> np.ndarray:
+    """τ of the disturbance (3.1), a number or one per episode, each within [0, T]; MotionError otherwise."""
+    values = np.asarray(tau, dtype=float)
+    bad = ~(np.isfinite(values) & (values >= 0) & (values <= duration))
+    if values.ndim == 0 and bad:
+        raise MotionError(f'tau must be within [0, T = {duration}] s, got {tau!r}')
+    if bad.any():
+        episode = int(np.argmax(bad))
+        raise MotionError(f'tau must be within [0, T = {duration}] s: episode {episode} has {values[episode]!r}')
+    return values
+
+
+def disturbed_start(motion: ProgrammedMotion, tau) -> tuple[np.ndarray, np.ndarray]:
+    """(3.1) with spec §7's sign: q(0) = q^d(0) and q̇(0) = -q̇^d(τ), against the motion; for τ of shape (B,),
+    q̇(0) has shape (B, n)."""
+    _, v_at_tau, _ = motion.sample(checked_tau(tau, motion.duration))
+    return np.array(motion.q0, dtype=float), -v_at_tau
+
+
 def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.ndarray:
     """P^nom(t) = M(q^d) q̈^d + V(q^d, q̇^d) + G(q^d) at each time (spec §7); shape (len(times), n).
 
@@ -103,6 +133,15 @@ def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.
     """
     positions, velocities, accelerations = motion.sample(times)
     return np.array([arm.inverse_dynamics(q, v, a) for q, v, a in zip(positions, velocities, accelerations)])
+
+
+# A torque at its limit is within it: the recorded torque may exceed the limit it was clamped to by rounding.
+LIMIT_TOLERANCE = 1e-9  # N m
+
+
+def within_limits(max_abs_torque, limit) -> bool:
+    """Whether every joint's largest torque stays within its limit."""
+    return bool(np.all(np.asarray(max_abs_torque, dtype=float) <= np.asarray(limit, dtype=float) + LIMIT_TOLERANCE))
 
 
 def paper_torque_limit(nominal: np.ndarray) -> np.ndarray:

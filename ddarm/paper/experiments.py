@@ -18,7 +18,7 @@ from ddarm.control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega
 from ddarm.control.laws import CONTROLLERS
 from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.spec import EpisodeSpec, gains_from_omega
-from ddarm.motion.programmed import paper_torque_limit, paper_trajectory
+from ddarm.motion.programmed import paper_torque_limit, paper_trajectory, within_limits
 from ddarm.paper.claims import judge_claims
 from ddarm.paper.schema import (GainSet, OmegaProcedureRow, OmegaRuleRow, Results, RunSettings, Search, StabilityRow,
                                 Table4Row, TauRow)
@@ -90,7 +90,7 @@ class Reproduction:
         limit = paper_torque_limit(np.array([scored['max_abs_nominal_torque']]))
         return {'I1': scored['I1'], 'I2': scored['I2'], 'I': scored['I'], 'diverged': scored['diverged'],
                 'max_abs_torque': tuple(scored['max_abs_torque']), 'torque_limit': tuple(limit.tolist()),
-                'within_limits': bool(np.all(np.array(scored['max_abs_torque']) <= limit + 1e-9)),
+                'within_limits': within_limits(scored['max_abs_torque'], limit),
                 'bag': str(bag.relative_to(self.out))}
 
     def search_all(self) -> dict:

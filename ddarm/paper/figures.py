@@ -15,7 +15,7 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.paper.schema import Results
 from ddarm.paper.settings import Case, PaperSettings
 from ddarm.paper.tables import CONTROLLER_NAMES, case_text, number, paper_number, table4_cases
-from ddarm.recording.bags import BagEpisode
+from ddarm.recording.bags import BagEpisode, bag_result
 
 COLOURS = {'pd_gravity': 'tab:blue', 'computed_torque': 'tab:red'}
 DPI = 120
@@ -27,24 +27,19 @@ def _new_figure(width: float, height: float) -> Figure:
     return figure
 
 
-def _episode_series(bag: BagEpisode) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(t_n, e_n in degrees, interval edges, applied torque) over the samples the bag holds before any divergence."""
-    k_max = len(bag.reference_times) - 1
-    samples = []
-    for n in range(k_max + 1):
-        if n not in bag.states or bag.states[n][0] is None:
-            break
-        samples.append(n)
-    times = bag.reference_times[samples]
-    errors = np.degrees(bag.q_ref[samples] - np.array([bag.states[n][0] for n in samples]))
-    applied = [n for n in samples if n + 1 in bag.states and bag.states[n + 1][2] is not None]
+def _episode_series(bag: BagEpisode) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """(t_n, e_n in degrees, interval edges, applied torque, diverged) over the bag's scored samples.
+
+    The samples are those the scorer scores (`bag_result`): BagError for a bag missing any.
+    """
+    episode = bag_result(bag)
+    errors, torque = episode.scored('errors'), episode.scored('torque')
+    count = len(torque)
+    times = episode.plan.times[:count]
     period = float(bag.episode['spec']['period'])
-    torque = np.array([bag.states[n + 1][2] for n in applied]).reshape(len(applied), len(bag.joints))
-    if not applied:
-        return times, errors, np.empty(0), torque
     # A step plot draws a value over [edge_i, edge_i+1): the last held interval needs its end too.
-    edges = np.append(bag.reference_times[applied], (applied[-1] + 1) * period)
-    return times, errors, edges, np.vstack([torque, torque[-1:]])
+    edges = np.append(times, count * period)
+    return times, np.degrees(errors), edges, np.vstack([torque, torque[-1:]]), bool(episode.diverged[0])
 
 
 def _plain_log_ticks(axis) -> None:
@@ -62,8 +57,7 @@ def tracking_figure(path: Path, episodes: dict, case: Case) -> None:
     figure = _new_figure(11, 2.6 * len(joints) + 1.0)
     axes = figure.subplots(len(joints), 2, sharex=True, squeeze=False)
     for controller, (row, bag) in episodes.items():
-        times, errors, edges, torque = _episode_series(bag)
-        diverged = len(times) < len(bag.reference_times)
+        times, errors, edges, torque, diverged = _episode_series(bag)
         label = (f'{CONTROLLER_NAMES[controller]} (delay d = {row.delay}): I1 = {number(row.I1)}, '
                  f'I2 = {number(row.I2)}' + (f' (DIVERGED at t = {times[-1]:g} s)' if diverged else ''))
         for j in range(len(joints)):

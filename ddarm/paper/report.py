@@ -48,15 +48,16 @@ def _header(results: Results, out: Path) -> str:
 - Every figure of ours in the tables below was scored from the bag of the episode it links to (paths
   relative to this folder), recorded as the episode ran through the ROS graph. Re-score any of them
   with `ddarm score <bag>`, e.g. `cd {out} && ddarm score {example}` (`--json` prints every field).
-- "paper" columns: the paper's Tables 2-4 (MODEL.md section 10); — where the paper gives no figure.
-- Indices (MODEL.md 8): I1 = (2.5) = (1/k_max) Σ_j Σ_i |e_i(jΔ)| with e in degrees; I2 the same sum of
-  |P_i - P_i^nom| weighted by R_i = 10 / max_j |P_i^nom(jΔ)|; I = I1 + I2 = (3.2). PD + gravity is
-  the paper's control system of Fig. 1, computed torque that of Fig. 2.
+- "paper" columns: the paper's Tables 2-4 (docs/model-specification.md §10); — where the paper gives no
+  figure.
+- Indices (docs/model-specification.md §8): I1 = (2.5) = (1/k_max) Σ_j Σ_i |e_i(jΔ)| with e in degrees;
+  I2 the same sum of |P_i - P_i^nom| weighted by R_i = 10 / max_j |P_i^nom(jΔ)|; I = I1 + I2 = (3.2).
+  PD + gravity is the paper's control system of Fig. 1, computed torque that of Fig. 2.
 """
 
 
 def _claims(results: Results) -> str:
-    lines = ['## Claims (MODEL.md section 10)', '',
+    lines = ['## Claims (docs/model-specification.md §10)', '',
              'Judged by the experiments from the numbers below; see the reconstruction notes for why '
              'absolute figures may differ from the paper\'s.', '']
     for claim in results.claims:
@@ -71,8 +72,8 @@ def _reconstruction(results: Results) -> str:
 
 The paper's figures with the arm's dimensions (Fig. 3) and trajectory 1's initial configuration (Fig. 4)
 are lost. Our geometry (joint 2 on the base axis, link lengths) and trajectory 1's start are
-reconstructions, fixed in MODEL.md (its **[fixed here]** choices), as is the sign of the initial velocity
-disturbance. The inertia matrix, gravity torques, nominal torques, torque limits and the weights R_i all
+reconstructions, fixed in docs/model-specification.md (§1, §4), as is the sign of the initial velocity
+disturbance (§7). The inertia matrix, gravity torques, nominal torques, torque limits and the weights R_i all
 follow from those choices, so our absolute figures may differ from the paper's; what a faithful
 implementation must reproduce are the orderings and the trends (which controller is better, how each
 index grows with τ, what the torque limits do). Choices that may explain differences:

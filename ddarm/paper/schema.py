@@ -2,8 +2,9 @@
 
 One definition for both sides: ddarm.paper.experiments builds these objects and writes `to_json()`;
 the report takes `Results.from_json`, which refuses a missing or unknown key, a value of the wrong
-type, a law or index outside the vocabulary, or a row naming gains that are not there. A results.json
-of another version is refused by name rather than reported wrongly.
+type, a law or index outside the vocabulary, or a row naming gains that are not there. Each file says
+its `schema_version` (SCHEMA_VERSION); a results.json of another version, or of none, is refused by that key
+rather than reported wrongly.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from ddarm.paper.settings import Controller, Table4Figures
 
 Index = Literal[INDICES]
 Vector = tuple[float, ...]
+# results.json's layout: raise it with any change to the keys or their meaning.
+SCHEMA_VERSION = 1
 
 
 class ResultsError(DdarmError, ValueError):
@@ -170,8 +173,9 @@ class Claim:
 @dataclass
 class Results:
     """Every cell of the reproduction. Filled as the experiments run: not frozen, its lists grow, and
-    `claims` and `wall_time_s` come last."""
+    `claims` and `wall_time_s` come last. `schema_version` is written first, and always SCHEMA_VERSION."""
 
+    schema_version: int = field(default=SCHEMA_VERSION, kw_only=True)
     command: str
     quick: bool
     started: str
@@ -191,6 +195,15 @@ class Results:
     @classmethod
     def from_json(cls, data, source: str = 'results') -> Results:
         """`data` (results.json's object) as Results; ResultsError names `source` and the key refused."""
+        # The version first: another version's keys would otherwise be refused one by one, never by what they are.
+        if isinstance(data, dict):
+            if 'schema_version' not in data:
+                raise ResultsError(f"{source}: missing key 'schema_version' (results.json of schema_version "
+                                   f'{SCHEMA_VERSION} holds it: this file is from before the schema had versions)')
+            version = data['schema_version']
+            if isinstance(version, bool) or version != SCHEMA_VERSION:
+                raise ResultsError(f'{source}: schema_version is {version!r}: this ddarm reads results.json of '
+                                   f'schema_version {SCHEMA_VERSION} only')
         results = typed.read(cls, data, source, ResultsError)
         names = [gains.name for gains in results.gains]
         for i, name in enumerate(names):

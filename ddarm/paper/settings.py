@@ -1,27 +1,36 @@
 """The paper's settings, read from data/settings.yaml into frozen dataclasses.
 
 The file holds everything that is the paper's rather than the code's: the delays, the cases, the τ
-grid, the published figures of Tables 2-4, section 2's cases, the budgets, the reconstruction notes.
-Beyond the types (ddarm.paper.typed), the loader refuses settings that would fail only deep into a
-run: a law or τ without its figures, a case on a motion that does not exist, a disturbance with a
-value per joint for another arm.
+grid, the published figures of Tables 2-4, section 2's cases, the claims' thresholds, the budgets, the
+reconstruction notes. Beyond the types (ddarm.paper.typed), the loader refuses settings that would fail
+only deep into a run, naming the key: a law or τ without its figures, a case on a motion that does not
+exist, a disturbance with a value per joint for another arm, and every episode `ddarm reproduce` would
+run from them that ddarm.episodes.spec.check_episode refuses (T not a whole number of periods, a τ beyond
+T, a delay out of range, an ω rule <= 0, ...), budgets too small for the searches, two bags of one name.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from collections.abc import Mapping
 from typing import Literal
 
+import numpy as np
 import yaml
 
-from ddarm.control.laws import CONTROLLERS
+from ddarm.control.gains import SEARCH_START_OMEGAS, omega_rule_computed_torque
+from ddarm.control.laws import CONTROLLERS, GainError, checked_delay
+from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 from ddarm.errors import DdarmError
 from ddarm.motion.files import DataLoader
-from ddarm.motion.programmed import PAPER_TRAJECTORIES, paper_trajectory
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints, paper_trajectory
 from ddarm.paper import typed
+from ddarm.tuning.procedures import steady_state_error_per_unit_gain
 
 SETTINGS_PATH = Path(__file__).resolve().parent / 'data' / 'settings.yaml'
 
@@ -98,6 +107,21 @@ class ProcedureCase:
 
 
 @dataclass(frozen=True)
+class Range:
+    """The closed interval [low, high]."""
+
+    low: float
+    high: float
+
+
+@dataclass(frozen=True)
+class ClaimThresholds:
+    """The numbers in the paper's claims that ddarm.paper.claims judges our results against."""
+
+    table4_I1_ratio: Range  # PD + gravity's Table 4 I1 / computed torque's, in every case
+
+
+@dataclass(frozen=True)
 class Stability:
     """The claim that computed torque at ω stays stable for every Δ ≤ claimed_period, and the Δ run."""
 
@@ -118,6 +142,7 @@ class PaperSettings:
     omega_rules: Mapping[Controller, float]
     omega_procedure: Mapping[Controller, ProcedureCase]
     stability: Stability
+    claims: ClaimThresholds
     budgets: Budgets
     reconstruction: tuple[str, ...]
 
@@ -141,8 +166,9 @@ def load_settings(path: Path | str = SETTINGS_PATH) -> PaperSettings:
     path = Path(path)
     try:
         document = yaml.load(path.read_text(), Loader=DataLoader)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as error:
         raise SettingsError(f'{path}: cannot read the settings: {error}') from error
+    _refuse_huge_integers(document, path, '')
     settings = typed.read(PaperSettings, document, str(path), SettingsError)
     _check(settings, path)
     return settings
@@ -178,17 +204,134 @@ def _check(settings: PaperSettings, path: Path) -> None:
             fail(f'budgets.{name}.taus {unknown} are not among the taus the paper prints figures for')
     cases = {'case': settings.case, 'tracking_case': settings.tracking_case}
     cases.update({f'table4[{i}].case': case for i, case in enumerate(settings.table4_cases)})
+    joints = {}  # per case key: the number of joints its motion drives
     for key, case in cases.items():
         if case.trajectory not in PAPER_TRAJECTORIES:
             fail(f'{key}.trajectory must be one of {list(PAPER_TRAJECTORIES)}, got {case.trajectory}')
+        try:
+            joints[key] = len(paper_motion_joints(case.trajectory))
+        except MotionError as error:
+            fail(f'{key}.trajectory {case.trajectory}: {error}')
     needs = {'case': 'Table 3 runs the I (3.2) gains searched there', 'tracking_case': 'the tracking figure '
              'shows its Table 4 episodes'}
     for key, reason in needs.items():
         if cases[key] not in settings.table4_cases:
             fail(f'{key} {cases[key]} must be one of the table4 cases: {reason}')
-    joints = paper_trajectory(settings.case.trajectory, settings.case.T).dof
     for controller, procedure in settings.omega_procedure.items():
         for option, values in procedure.disturbance.items():
-            if len(values) != joints:
+            if len(values) != joints['case']:
                 fail(f'omega_procedure.{controller}.disturbance.{option} has {len(values)} values for the '
-                     f'{joints} joints of trajectory {settings.case.trajectory}')
+                     f'{joints["case"]} joints of trajectory {settings.case.trajectory}')
+    _check_runs(settings, cases, joints, fail)
+    _check_claims_and_budgets(settings, max(joints.values()), fail)
+
+
+def _positive(fail, key: str, value: float) -> None:
+    if not (math.isfinite(value) and value > 0):
+        fail(f'{key} must be finite and positive, got {value!r}')
+
+
+def _check_runs(settings: PaperSettings, cases: dict[str, Case], joints: dict[str, int], fail) -> None:
+    """Every episode `ddarm reproduce` runs from `settings` (ddarm.paper.experiments builds the same specs),
+    through ddarm.episodes.spec.check_episode as it would be when it ran; a refusal names the key it comes from."""
+    seen = set()
+
+    def checked(key: str, build) -> EpisodeSpec:
+        try:
+            spec = build()
+            if spec not in seen:
+                check_episode(spec)
+                seen.add(spec)
+            return spec
+        except (DdarmError, ValueError, ArithmeticError) as error:
+            fail(f'{key}: {error}')
+
+    def distinct(key: str, names: list[str]) -> None:
+        repeated = sorted({name for name in names if names.count(name) > 1})
+        if repeated:
+            fail(f'{key} give two episodes the bag name(s) {repeated}: each episode records a bag of its own')
+
+    for controller, delay in settings.delays.items():
+        try:
+            checked_delay(delay)
+        except GainError as error:
+            fail(f'delays.{controller}: {error}')
+    for key, case in cases.items():
+        _positive(fail, f'{key}.T', case.T)
+        _positive(fail, f'{key}.period', case.period)
+    # Bag names (ddarm.paper.experiments) hold τ to 2 decimals, T and Δ as %g.
+    distinct('the table4 cases', [f'traj{case.trajectory}-T{case.T:g}-dt{case.period:g}'
+                                  for case in settings.table4_cases])
+    distinct('the taus', [f'tau{tau:.2f}' for tau in settings.taus])
+    distinct('the stability.periods', [f'dt{period:g}' for period in settings.stability.periods])
+    case = settings.case
+    for controller in CONTROLLERS:
+        # The searches' and Table 4's episodes (placeholder gains, one per joint of the motion).
+        templates = {key: checked(key, lambda: EpisodeSpec(
+            controller=controller, kp=(1.0,) * joints[key], kv=(1.0,) * joints[key], trajectory=each.trajectory,
+            duration=each.T, period=each.period, delay=settings.delays[controller]))
+            for key, each in cases.items()}
+        template = templates['case']
+        # Tables 2 and 3: every τ the paper prints (a budget runs some of them), unlimited and limited.
+        for i, tau in enumerate(settings.taus):
+            for limit in ('none', 'paper'):
+                checked(f'taus[{i}]', lambda: dataclasses.replace(template, tau=tau, torque_limit=limit))
+        # Section 2: the ω rule's episode, and the procedure's disturbed one.
+        omega = settings.omega_rules[controller]
+        _positive(fail, f'omega_rules.{controller}', omega)
+        final = paper_trajectory(case.trajectory, case.T).qf
+        checked(f'omega_rules.{controller}', lambda: dataclasses.replace(
+            template, **dict(zip(('kp', 'kv'), gains_from_omega(controller, omega, final_position=final)))))
+        procedure = settings.omega_procedure[controller]
+        _positive(fail, f'omega_procedure.{controller}.max_error_deg', procedure.max_error_deg)
+        disturbed = checked(f'omega_procedure.{controller}.disturbance',
+                            lambda: dataclasses.replace(template, **procedure.disturbance))
+        if not np.any(steady_state_error_per_unit_gain(disturbed)[0]):
+            fail(f'omega_procedure.{controller}.disturbance {dict(procedure.disturbance)} causes no steady-state '
+                 'error: the procedure would have no smallest ω to find')
+    # The sampling claim: computed torque at ω for every period, at the case's T.
+    stability = settings.stability
+    _positive(fail, 'stability.omega', stability.omega)
+    _positive(fail, 'stability.claimed_period', stability.claimed_period)
+    kp, kv = omega_rule_computed_torque(joints['case'], stability.omega)
+    for i, period in enumerate(stability.periods):
+        _positive(fail, f'stability.periods[{i}]', period)
+        checked(f'stability.periods[{i}]', lambda: EpisodeSpec(
+            controller='computed_torque', kp=kp, kv=kv, trajectory=case.trajectory, duration=case.T, period=period,
+            delay=settings.delays['computed_torque']))
+
+
+def _check_claims_and_budgets(settings: PaperSettings, joints: int, fail) -> None:
+    ratio = settings.claims.table4_I1_ratio
+    _positive(fail, 'claims.table4_I1_ratio.low', ratio.low)
+    if not (math.isfinite(ratio.high) and ratio.high >= ratio.low):
+        fail(f'claims.table4_I1_ratio.high must be finite and at least low = {ratio.low!r}, got {ratio.high!r}')
+    # Each search (ddarm.paper.experiments.optimise) spends a third of its episodes on Nelder-Mead from the
+    # ω-rule starts, the rest on CMA-ES from its best point. ddarm.tuning.search.search_gains refuses a
+    # Nelder-Mead budget below one simplex per start: starts x (2n + 1) points for n joints' k_p and k_v. CMA-ES
+    # needs its start and, to search at all, one population.
+    simplices = len(SEARCH_START_OMEGAS) * (2 * joints + 1)
+    for name in ('full', 'quick'):
+        budget, key = getattr(settings.budgets, name), f'budgets.{name}'
+        if budget.cma_popsize < 2:
+            fail(f'{key}.cma_popsize must be at least 2, got {budget.cma_popsize}')
+        # The smallest n with n // 3 >= simplices and n - n // 3 >= 1 + popsize.
+        least = max(3 * simplices, 3 * budget.cma_popsize // 2 + 1)
+        if budget.search_episodes < least:
+            fail(f'{key}.search_episodes must be at least {least} (a third for Nelder-Mead: a simplex of '
+                 f'{2 * joints + 1} points for each of the {len(SEARCH_START_OMEGAS)} ω-rule starts; the rest for '
+                 f'the CMA-ES start and one population of {budget.cma_popsize}), got {budget.search_episodes}')
+        if not budget.taus:
+            fail(f'{key}.taus must hold at least one τ')
+
+
+def _refuse_huge_integers(data, path: Path, key: str) -> None:
+    """An integer beyond a float's range is no setting (and would overflow where a number is read)."""
+    if isinstance(data, dict):
+        for name, item in data.items():
+            _refuse_huge_integers(item, path, f'{key}.{name}' if key else str(name))
+    elif isinstance(data, list):
+        for i, item in enumerate(data):
+            _refuse_huge_integers(item, path, f'{key}[{i}]')
+    elif isinstance(data, int) and not isinstance(data, bool) and abs(data) > sys.float_info.max:
+        raise SettingsError(f'{path}: {key} is an integer beyond the range of a float')

@@ -256,8 +256,8 @@ def section2(results: Results, cells: Cells, settings: PaperSettings) -> str:
 
 ### ω-rule gains
 
-Critically damped rules (MODEL.md 6): PD + gravity k_p = m_ii ω², k_v = 2 m_ii ω (m_ii at q_f);
-computed torque k_p = ω², k_v = 2ω. {sentence(case_line)}, the paper's delays.
+Critically damped rules (docs/model-specification.md §6): PD + gravity k_p = m_ii ω², k_v = 2 m_ii ω
+(m_ii at q_f); computed torque k_p = ω², k_v = 2ω. {sentence(case_line)}, the paper's delays.
 
 {markdown_table(['controller', 'ω rad/s', 'k_p', 'k_v', 'I1 (2.5)', 'I2', 'I (3.2)'], rules)}
 

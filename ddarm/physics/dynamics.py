@@ -153,7 +153,7 @@ def inverse_dynamics(chain_parent, chain_kind, chain_axis, armature, gravity, ch
 
     Motions are (linear, angular) at the joint frame's origin; a parent's motion m enters the
     child's frame as Rᵀ(m_lin - t × m_ang), Rᵀ m_ang; the base accelerates at -g. Link i's
-    mass and inertia are the chain's times mass_scale[i] (MODEL.md's plant/model mismatch).
+    mass and inertia are the chain's times mass_scale[i] (spec §2's plant/model mismatch).
     """
     n = v.shape[0]
     for i in range(n):
@@ -272,7 +272,8 @@ def _to_parent(rotation, translation, i, b, f0, f1, f2, n0, n1, n2):
 
 @numba.njit(**COMPILED, inline='always')
 def joint_space_inertia(chain_parent, chain_kind, chain_axis, armature, chain_mass, lever, chain_inertia,
-                        mass_scale, rotation, translation, composite_mass, first_moment, origin_inertia, mass_matrix, lanes):
+                        mass_scale, rotation, translation, composite_mass, first_moment, origin_inertia, mass_matrix,
+                        lanes):
     """M(q) of (1.1), both triangles: the composite-rigid-body algorithm, as Pinocchio's crba.
 
     A composite body is kept as its mass m, first moment h = m c and inertia I about the joint

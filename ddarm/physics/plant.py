@@ -25,6 +25,8 @@ DEFAULT_SUBSTEPS = 8
 DEFAULT_MAX_POSITION = 100.0  # rad
 DEFAULT_MAX_VELOCITY = 1000.0  # rad/s
 MAX_SUBSTEPS = 10_000
+# Sampling periods the nodes accept, s; in-process episodes take any period in (0, 1].
+NODE_PERIOD_RANGE = (1e-4, 1.0)
 
 
 class PlantError(DdarmError, ValueError):
@@ -33,10 +35,7 @@ class PlantError(DdarmError, ValueError):
 
 def checked_mass_scale(values, dof: int) -> np.ndarray:
     """The plant's link masses (and moments) against the model's: `dof` finite positive factors."""
-    array = np.asarray(values, dtype=float) if values is not None else None
-    if array is None or array.shape != (dof,) or not np.all(np.isfinite(array) & (array > 0)):
-        raise PlantError(f'mass_scale must be {dof} finite positive numbers, got {values!r}')
-    return array
+    return per_joint('mass_scale', values, dof, PlantError, positive=True)
 
 
 def _optional(name: str, values, dof: int, **rule) -> np.ndarray | None:
@@ -90,11 +89,6 @@ class PlantOptions:
                 float(self.period), int(self.substeps), float(self.max_position), float(self.max_velocity))
 
 
-def disturbed_initial_state(position: np.ndarray, velocity_at_tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3.1) with spec §7's sign: start at q^d(0) with q̇(0) = -q̇^d(τ), against the motion."""
-    return np.array(position, dtype=float), -np.array(velocity_at_tau, dtype=float)
-
-
 # The compiled functions keep episodes on the last axis ("lanes"): see ddarm.physics.dynamics.
 @numba.njit(**COMPILED, inline='always')
 def saturate(command, limit, applied, lanes):
@@ -122,10 +116,10 @@ def step_workspace(n, lanes):
 
 @numba.njit(**COMPILED)
 def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
-    """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4, `substeps` steps; spec §3, §5).
+    """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4 in `substeps` steps; spec §3, §5, §11).
 
     Each lane whose new state is finite and within the bounds takes it (within[b] = True); any
-    other keeps its state of t_n, frozen as the last one within bounds (within[b] = False).
+    other keeps its state of t_n, frozen as the last one within bounds (within[b] = False; spec §12).
     """
     external_torque, viscous_friction, coulomb_friction, period, substeps, max_position, max_velocity = options
     work, load, qn, vn, qs, stage_v, stage_a = scratch
@@ -174,7 +168,7 @@ class Plant:
 
     Once the state leaves the physical bounds (or stops being finite) the plant is `diverged`:
     its state stays frozen at the last sample within bounds. `mass_scale` scales each link of
-    the plant against `chain` (the model), as MODEL.md's plant/model mismatch does.
+    the plant against `chain` (the model): spec §2's plant/model mismatch.
     """
 
     def __init__(self, chain: Chain, options: PlantOptions, q, v, mass_scale=None) -> None:
@@ -187,16 +181,10 @@ class Plant:
         self._mass_scale = np.ascontiguousarray(scale[:, None])
         limit = self.options.torque_limit
         self._limit = np.full((dof, 1), np.inf) if limit is None else np.ascontiguousarray(limit[:, None])
-        self._q = self._state_vector('initial position', q)[:, None].copy()
-        self._v = self._state_vector('initial velocity', v)[:, None].copy()
+        self._q = per_joint('initial position', q, dof, PlantError)[:, None].copy()
+        self._v = per_joint('initial velocity', v, dof, PlantError)[:, None].copy()
         self.sample = 0
         self.diverged = False
-
-    def _state_vector(self, name: str, value) -> np.ndarray:
-        array = np.array(value, dtype=float)
-        if array.shape != (self.dof,) or not np.all(np.isfinite(array)):
-            raise PlantError(f'{name} must be {self.dof} finite numbers, got {value!r}')
-        return array
 
     @property
     def q(self) -> np.ndarray:
@@ -211,9 +199,21 @@ class Plant:
         return self.sample * self.options.period
 
     def saturate(self, command: np.ndarray) -> np.ndarray:
-        """The torque the actuators apply for a command (`saturate`)."""
+        """The torque the actuators apply for a command (`saturate`).
+
+        Raises PlantError for a command that is not `dof` numbers of shape (dof,): the compiled
+        clamp reads `dof` values without bounds checks. Values are not checked: a NaN passes
+        through as NaN (`advance` refuses it), as the nodes only pass commands checked finite.
+        """
+        try:
+            values = np.asarray(command, dtype=float)
+        except (TypeError, ValueError) as error:
+            raise PlantError(f'sample {self.sample}: command must be {self.dof} numbers, got {command!r}') from error
+        if values.shape != (self.dof,):
+            raise PlantError(f'sample {self.sample}: command must be {self.dof} numbers of shape ({self.dof},), '
+                             f'got shape {values.shape}: {command!r}')
         applied = np.empty((self.dof, 1))
-        saturate(np.ascontiguousarray(np.asarray(command, dtype=float)[:, None]), self._limit, applied, 1)
+        saturate(np.ascontiguousarray(values[:, None]), self._limit, applied, 1)
         return applied[:, 0]
 
     def advance(self, applied_torque: np.ndarray) -> bool:

@@ -25,9 +25,11 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
+from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.samples import MessageError, joint_order, sample_at
-from ddarm.episodes.result import Episodes
+from ddarm.samples import MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.episodes.indices import IndicesError
+from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.interrupts import Interrupted, critical_section
 
@@ -304,6 +306,7 @@ class BagEpisode:
     nominal: np.ndarray
     states: dict  # sample -> (q or None, v or None, effort or None)
     commands: dict  # sample -> effort
+    path: Path | None = None  # where it was read from
 
 
 def deserialize(raw: bytes | memoryview, msgtype: str):
@@ -347,8 +350,10 @@ def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpis
         raise BagError(f'{path}: no metadata.yaml: not a bag, or a recording that never closed (incomplete)')
     try:
         return _read(path, require_complete)
-    except BagError:
-        raise
+    except BagError as error:
+        if str(error).startswith(f'{path}: '):
+            raise
+        raise BagError(f'{path}: {error}') from error  # a message's problem, named with its bag
     except Exception as error:  # rosbags asserts and raises freely on damaged files
         raise BagError(f'{path}: unreadable bag ({type(error).__name__}: {error})') from error
 
@@ -438,11 +443,14 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
     if len(messages['/reference']) != 1:
         raise BagError(f"{path}: expected one /reference message, found {len(messages['/reference'])}")
     reference = messages['/reference'][0]
-    order = _in_order(reference.joint_names, joints, '/reference')
-    fields = {name: np.array([np.asarray(getattr(point, name))[order] for point in reference.points])
-              for name in ('positions', 'velocities', 'accelerations', 'effort')}
-    times = np.array([point.time_from_start.sec + point.time_from_start.nanosec * 1e-9
-                      for point in reference.points])
+    _in_order(reference.joint_names, joints, '/reference')
+    try:  # the checks the controllers apply to the reference they receive
+        times, q_ref, v_ref, a_ref, nominal = checked_reference(
+            reference.joint_names, ((point.time_from_start.sec + point.time_from_start.nanosec * 1e-9,
+                                     point.positions, point.velocities, point.accelerations, point.effort)
+                                    for point in reference.points), joints, period)
+    except MessageError as error:
+        raise BagError(f'{path}: /reference: {error}') from error
     stamps = [message.clock.sec * 1_000_000_000 + message.clock.nanosec for message in messages.get('/clock', [])]
     repeated = _repeated(stamps)
     if repeated:
@@ -451,33 +459,51 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
     states = {}
     for n, message in _by_sample(path, '/joint_states', messages['/joint_states'], period).items():
         order = _in_order(message.name, joints, '/joint_states')
-        states[n] = tuple(None if len(values) == 0 else np.asarray(values)[order]
-                          for values in (message.position, message.velocity, message.effort))
+        states[n] = tuple(None if len(values) == 0 else _values(path, values, f'/joint_states sample {n}', field,
+                                                               joints)[order]
+                          for field, values in (('position', message.position), ('velocity', message.velocity),
+                                                ('effort', message.effort)))
     commands = {}
     for n, message in _by_sample(path, '/effort_command', messages['/effort_command'], period).items():
-        commands[n] = np.asarray(message.effort)[_in_order(message.name, joints, '/effort_command')]
-    return BagEpisode(episode, status, joints, times, fields['positions'], fields['velocities'],
-                      fields['accelerations'], fields['effort'], states, commands)
+        order = _in_order(message.name, joints, '/effort_command')
+        commands[n] = _values(path, message.effort, f'/effort_command sample {n}', 'effort', joints)[order]
+    return BagEpisode(episode, status, joints, times, q_ref, v_ref, a_ref, nominal, states, commands, path)
+
+
+def _values(path: Path, values, what: str, field: str, joints: list) -> np.ndarray:
+    """A recorded field as the nodes check it on arrival: one finite number per joint."""
+    try:
+        return finite_array(values, what, field, len(joints))
+    except MessageError as error:
+        raise BagError(f'{path}: {error}') from error
+
+
+def bag_result(bag: BagEpisode) -> Episodes:
+    """The recorded episode as an Episodes (B = 1), scored by the one rule for recordings.
+
+    BagError (naming the bag) for a configuration on /ddarm/episode that does not make a spec,
+    a torque limit that is not one positive number per joint, samples missing, or a reference
+    the indices cannot be weighed by.
+    """
+    path = bag.path
+    try:
+        spec = EpisodeSpec(**bag.episode['spec'])
+    except (TypeError, ValueError) as error:  # EpisodeError is a ValueError
+        raise BagError(f'{path}: {EPISODE_TOPIC} holds a spec that cannot be run: {error}') from error
+    limit = bag.episode.get('torque_limit')
+    if limit is not None:
+        limit = per_joint(f'{path}: {EPISODE_TOPIC} torque_limit', limit, len(bag.joints), BagError, positive=True)
+    plan = EpisodePlan(bag.reference_times, bag.q_ref, bag.v_ref, bag.a_ref, bag.nominal, limit,
+                       *(bag.states[0][:2] if 0 in bag.states else (None, None)))
+    try:
+        return Episodes.from_recorded(spec, plan, bag.states, bag.commands)
+    except (RecordingError, IndicesError) as error:
+        raise BagError(f'{path}: {error}') from error
 
 
 def score_bag(path: Path | str) -> dict:
-    """The indices of a recorded episode, from its bag alone: the same JSON as `ddarm episode --json`."""
-    bag = read_episode_bag(path)
-    k_max = len(bag.reference_times) - 1
-    diverged_at = next((n for n in sorted(bag.states) if bag.states[n][0] is None and n > 0), None)
-    last = k_max if diverged_at is None else diverged_at - 1
-    missing = [n for n in range(last + 1) if n not in bag.states or bag.states[n][0] is None]
-    missing += [n + 1 for n in range(last + 1) if n + 1 not in bag.states or bag.states[n + 1][2] is None]
-    missing += [n for n in range(last + 1) if n not in bag.commands]
-    if missing:
-        raise BagError(f'{path}: samples {sorted(set(missing))[:10]} are missing: the episode is incomplete')
-    spec = EpisodeSpec(**bag.episode['spec'])
-    limit = bag.episode.get('torque_limit')
-    plan = EpisodePlan(bag.reference_times, bag.q_ref, bag.v_ref, bag.a_ref, bag.nominal,
-                       None if limit is None else np.array(limit), bag.states[0][0], bag.states[0][1])
-    result = Episodes.from_samples(
-        spec, plan, q=np.array([bag.states[n][0] for n in range(last + 1)]),
-        v=np.array([bag.states[n][1] for n in range(last + 1)]),
-        command=np.array([bag.commands[n] for n in range(last + 1)]),
-        torque=np.array([bag.states[n + 1][2] for n in range(last + 1)]), diverged_at=diverged_at)
-    return {**result.summary(), 'bag': str(path)}
+    """The indices of a recorded episode, from its bag alone: the same JSON as `ddarm episode --json`.
+
+    BagError, naming the bag, for anything that keeps it from being scored.
+    """
+    return {**bag_result(read_episode_bag(path)).summary(), 'bag': str(path)}

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import yaml
 
+from ddarm.episodes.indices import INDICES
 from ddarm.recording.bags import BagError, checked_output_path, child_path
 from ddarm.interrupts import Interrupted, critical_section
 
@@ -79,7 +80,7 @@ class RunFolder:
     def add_episode(self, record: dict) -> None:
         self.summary['episodes'].append(record)
         self.log.info('episode %s: %s', record.get('name'), json.dumps(
-            {key: record.get(key) for key in ('I1', 'I2', 'I', 'diverged', 'bag')}))
+            {key: record.get(key) for key in (*INDICES, 'diverged', 'bag')}))
         self._write_summary()
 
     def write_text(self, name: str, text: str) -> Path:

@@ -10,7 +10,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -28,13 +27,13 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                  EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                  SAMPLE_QOS, read_joint_state, reference_msg)
 from ddarm.ros.names import fully_qualified, namespace_arguments
-from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, _service_parameters,
+from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, service_parameters,
                                        node_parameters)
 from ddarm.samples import MessageError
 from ddarm.recording.bags import EpisodeBagWriter
-from ddarm.episodes.result import Episodes
+from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
-from ddarm.physics.arm import load_arm
+from ddarm.physics.arm import default_urdf_path, load_arm
 from ddarm.interrupts import check_stop
 
 # Wall seconds to wait for the plant and the controller to be on the graph, alone, before an episode.
@@ -397,6 +396,10 @@ class GraphDriver(Node):
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
                     alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> Episodes:
         """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died."""
+        if spec.urdf is not None and Path(spec.urdf).resolve() != default_urdf_path().resolve():
+            # The nodes run the arm of their own `urdf` parameter, set when they start: never another one silently.
+            raise GraphEpisodeError(f'the graph runs the nodes\' arm ({default_urdf_path()}); an episode of '
+                                    f'{spec.urdf} runs in-process only')
         plan = plan if plan is not None else check_episode(spec)
         self.wait_for_peers(executor, spec.controller, peer_timeout, alive)
         deadline = time.monotonic() + timeout
@@ -410,8 +413,8 @@ class GraphDriver(Node):
                     self.recording.fail(stalled)
 
         parameters = node_parameters(spec, plan, mode)
-        plant_parameters = _service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
-        controller_parameters = _service_parameters(parameters[spec.controller]['ros__parameters'],
+        plant_parameters = service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
+        controller_parameters = service_parameters(parameters[spec.controller]['ros__parameters'],
                                                     CONTROLLER_OPTIONAL)
         self._configure(executor, self.plant_node, plant_parameters, deadline, watching)
         self._configure(executor, spec.controller, controller_parameters, deadline, watching)
@@ -490,18 +493,12 @@ def plant_counters(report: dict, names, plant: str) -> dict[str, int]:
 
 
 def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> Episodes:
-    """Arrange the recorded samples as the in-process runner does, and score them."""
-    last = plan.k_max if recording.diverged_at is None else recording.diverged_at - 1
-    missing = [n for n in range(last + 2) if n not in recording.states]
-    missing += [n for n in range(last + 1) if n not in recording.commands]
-    if missing:
-        raise GraphEpisodeError(f'samples {sorted(set(missing))} are missing from the recording')
-    states = [recording.states[n] for n in range(last + 1)]
-    return Episodes.from_samples(
-        spec, plan, q=np.array([s.q for s in states]), v=np.array([s.v for s in states]),
-        command=np.array([recording.commands[n] for n in range(last + 1)]),
-        torque=np.array([recording.states[n + 1].effort for n in range(last + 1)]),
-        diverged_at=recording.diverged_at, plant_report=recording.plant_report)
+    """Score the recorded samples by the one rule for recordings (`Episodes.from_recorded`)."""
+    states = {n: (sample.q, sample.v, sample.effort) for n, sample in recording.states.items()}
+    try:
+        return Episodes.from_recorded(spec, plan, states, recording.commands, plant_report=recording.plant_report)
+    except RecordingError as error:
+        raise GraphEpisodeError(str(error)) from error
 
 
 def realtime_warnings(plant_report: dict | None) -> list[str]:

@@ -21,7 +21,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
-from ddarm.samples import MessageError, joint_order, sample_at
+from ddarm.samples import MessageError, checked_reference, finite_array, joint_order, sample_at
 
 JOINT_STATES_TOPIC = 'joint_states'
 EFFORT_COMMAND_TOPIC = 'effort_command'
@@ -44,9 +44,6 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=R
                        durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
-
-# Refused before any work (FAULTS.md 6): far beyond an episode length we run.
-MAX_REFERENCE_POINTS = 1_000_000
 
 
 def time_msg(seconds: float) -> Time:
@@ -71,16 +68,6 @@ def sample_index(stamp: Time, period: float) -> int:
     return sample_at(seconds(stamp), period)
 
 
-def _finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
-    if len(values) != expected:
-        raise MessageError(f'{name}: {field} has {len(values)} values for {expected} joints')
-    array = np.array(values, dtype=float)
-    bad = np.flatnonzero(~np.isfinite(array))
-    if bad.size:
-        raise MessageError(f'{name}: {field} is not finite at index {bad.tolist()}: {array[bad].tolist()}')
-    return array
-
-
 @dataclass(frozen=True)
 class StateSample:
     """A JointState read as the core wants it: sample index, and arrays in our joint order."""
@@ -101,7 +88,7 @@ def read_joint_state(msg: JointState, joints: list[str], period: float, what: st
     def field(values, label: str, needed: bool) -> np.ndarray | None:
         if not needed and len(values) == 0:
             return None
-        return _finite_array(values, what, label, count)[order]
+        return finite_array(values, what, label, count)[order]
 
     return StateSample(n, field(msg.position, 'position', need_state), field(msg.velocity, 'velocity', need_state),
                        field(msg.effort, 'effort', need_effort))
@@ -149,23 +136,9 @@ def reference_msg(joints: list[str], times, q, v, a, nominal) -> JointTrajectory
 
 def read_reference(msg: JointTrajectory, joints: list[str], period: float) -> Reference:
     """Validate a reference: our joints by name, one point per sample from t = 0, every field finite."""
-    what = 'reference'
-    order = joint_order(msg.joint_names, joints, what)
-    if not msg.points:
-        raise MessageError(f'{what}: no points')
-    if len(msg.points) > MAX_REFERENCE_POINTS:
-        raise MessageError(f'{what}: {len(msg.points)} points is more than the {MAX_REFERENCE_POINTS} allowed')
-    count = len(joints)
-    fields = {'positions': [], 'velocities': [], 'accelerations': [], 'effort': []}
-    times = []
-    for j, point in enumerate(msg.points):
-        t = seconds(point.time_from_start)
-        if abs(t - j * period) > 1e-6 * period + 1e-9:
-            raise MessageError(f'{what}: point {j} is at {t} s, not at sample time {j * period} s')
-        times.append(j * period)
-        for name, values in fields.items():
-            values.append(_finite_array(getattr(point, name), f'{what} point {j}', name, count)[order])
-    return Reference(np.array(times), *(np.array(fields[name]) for name in fields))
+    points = ((seconds(point.time_from_start), point.positions, point.velocities, point.accelerations,
+               point.effort) for point in msg.points)
+    return Reference(*checked_reference(msg.joint_names, points, joints, period))
 
 
 def descriptor(description: str, *, floating: tuple[float, float] | None = None,

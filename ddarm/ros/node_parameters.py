@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from rclpy.parameter import Parameter
 
-from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, load_arm
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
+from ddarm.physics.arm import load_arm
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
@@ -37,7 +38,7 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
 
 
-def _service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
+def service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
     """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
     parameters = [Parameter(name, value=value) for name, value in values.items() if name != 'urdf']
     parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]

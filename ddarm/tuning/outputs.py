@@ -10,13 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.recording.bags import BagError, checked_output_path
 from ddarm.recording.runs import RunFolder, controller_yaml
 
-# The indices the in-process search and the bag's scores are compared on, and how far they may differ
-# (relative) for the bag to confirm the search.
-COMPARED_INDICES = ('I1', 'I2', 'I')
+# How far (relative) the bag's indices may differ from the in-process search's for the bag to confirm it.
 AGREEMENT = 1e-9
 
 
@@ -72,7 +71,7 @@ def finish_omega(run: RunFolder, spec: EpisodeSpec, choice, out: str | None = No
 
 def relative_difference(in_process: dict, from_bag: dict) -> float:
     """The largest relative difference of the compared indices between the in-process run and the bag."""
-    return max(abs(from_bag[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in COMPARED_INDICES)
+    return max(abs(from_bag[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in INDICES)
 
 
 def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec, tuning, scored: dict, *,
@@ -90,7 +89,7 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
         'controller': template.controller, 'index': index, 'method': method, 'seed': seed,
         'kp': tuning.search.kp.tolist(), 'kv': tuning.search.kv.tolist(),
         'search_index': tuning.search.index, 'in_process': in_process,
-        'from_bag': {k: scored[k] for k in COMPARED_INDICES}, 'max_rel_difference': difference,
+        'from_bag': {k: scored[k] for k in INDICES}, 'max_rel_difference': difference,
         'agree': difference <= AGREEMENT, 'bag': scored['bag'],
         'start_omegas': list(tuning.start_omegas), 'start_indices': tuning.start_indices,
         'episodes': tuning.search.episodes, 'batches': tuning.search.batches,

@@ -11,9 +11,13 @@ import numpy as np
 from ddarm.control.gains import (computed_torque_error_external, computed_torque_error_mass, pd_gravity_error,
                                  smallest_omega)
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega
-from ddarm.motion.programmed import paper_torque_limit, paper_trajectory
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega, plan_episode
+from ddarm.motion.programmed import paper_trajectory
 from ddarm.physics.arm import load_arm
+
+
+# The raising step simulates one episode per ω: far more than any useful procedure, refused before any work.
+MAX_OMEGA_STEPS = 10_000
 
 
 @dataclass(frozen=True)
@@ -82,13 +86,17 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     steps, chosen, chosen_gains = [], None, (None, None)
     # A disturbance-free arm needs no minimum: the raising then starts from one step.
     omega = max(omega_min, omega_step)
+    if (omega_max - omega) / omega_step > MAX_OMEGA_STEPS:
+        raise EpisodeError(f'from ω = {omega:.6g} to omega max {omega_max!r} in steps of {omega_step!r} is more than '
+                           f'{MAX_OMEGA_STEPS} episodes: take a larger omega step or a smaller omega max')
+    # The actuator limit of the raising step: the spec's, or the paper's (2 x max nominal) if it has none.
+    limit = plan_episode(dataclasses.replace(spec, torque_limit='paper' if spec.torque_limit == 'none'
+                                             else spec.torque_limit)).torque_limit
     while omega <= omega_max + 1e-12:
         kp, kv = gains_from_omega(spec.controller, omega, spec.urdf, final)
         result = run_episode(dataclasses.replace(unlimited, kp=kp, kv=kv))
         largest = np.max(np.abs(result.scored('torque')), axis=0)
         nominal = np.max(np.abs(result.plan.nominal), axis=0)
-        limit = (paper_torque_limit(result.plan.nominal) if spec.torque_limit in ('none', 'paper')
-                 else np.array(spec.torque_limit))
         to_limit, to_nominal = float(np.max(largest / limit)), float(np.max(largest / nominal))
         diverged = bool(result.diverged[0])
         accepted = not diverged and to_limit <= 1.0 and to_nominal <= torque_factor

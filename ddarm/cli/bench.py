@@ -1,0 +1,57 @@
+"""`ddarm bench`: the batch engine's speed on the reference case, one batch call against one call per episode."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ddarm.episodes.bench import GAIN_SPREAD, SCALAR_EPISODES, run_bench
+
+
+
+def _count(name: str):
+    """An argparse type: a whole number in [1, ddarm.episodes.engine.<name>]."""
+    def parse(text: str) -> int:
+        from ddarm.episodes import engine
+
+        largest = getattr(engine, name)
+        value = int(text)
+        if not 1 <= value <= largest:
+            raise argparse.ArgumentTypeError(f'{value} is not in [1, {largest}]')
+        return value
+    return parse
+
+
+def command_bench(args: argparse.Namespace) -> int:
+    figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads)
+    if args.json:
+        print(json.dumps(figures))
+        return 0
+    print(f"ddarm bench: {figures['case']}; gains x exp({GAIN_SPREAD} N(0, 1)) per episode (seed "
+          f"{figures['seed']}); {figures['substeps']} RK4 substeps")
+    print(f"  batch engine : {figures['B']:6d} episodes in {figures['batch_s']:7.3f} s = "
+          f"{figures['batch_episodes_per_s']:8.1f} episodes/s (one call; the first call, "
+          f"{figures['warmup_s']:.2f} s of compiling or cache loading, not counted)")
+    print(f"  one per call : {figures['scalar_episodes']:6d} episodes in {figures['scalar_s']:7.3f} s = "
+          f"{figures['scalar_episodes_per_s']:8.1f} episodes/s (the first {figures['scalar_episodes']} "
+          f"of the batch's episodes)")
+    print(f"  ratio        : {figures['ratio']:.1f} x")
+    print(f"  largest relative difference of I1, I2, I on the {figures['scalar_episodes']} episodes both ran: "
+          f"{figures['max_rel_index_diff']:.2e}; divergence flags disagree on "
+          f"{figures['divergence_disagreements']}")
+    print(f"  peak RSS     : {figures['peak_rss_mib']:.0f} MiB")
+    return 0
+
+
+def add_bench_parser(commands) -> None:
+    """Register `ddarm bench` on the `ddarm` command's subparsers."""
+    bench = commands.add_parser('bench', help='episodes per second of the batch engine: one batch call against one call per episode')
+    bench.add_argument('--episodes', type=_count('MAX_BATCH'), default=1000, metavar='N',
+                       help='episodes in the batch (1000)')
+    bench.add_argument('--scalar-episodes', type=_count('MAX_BATCH'), default=SCALAR_EPISODES, metavar='M',
+                       help=f'of them, how many also run one per call ({SCALAR_EPISODES})')
+    bench.add_argument('--seed', type=int, default=0, help='seed of the gain perturbation (0)')
+    bench.add_argument('--threads', type=_count('MAX_THREADS'), metavar='T',
+                       help='threads of the batch engine (the cores available)')
+    bench.add_argument('--json', action='store_true', help='print one JSON object')
+    bench.set_defaults(handler=command_bench)
