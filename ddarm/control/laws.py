@@ -182,7 +182,7 @@ class _Law:
     def __init__(self, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None) -> None:
         self.chain = chain
         self._arrays = chain.arrays()
-        self.kp, self.kv = checked_gains(kp, kv, chain.dof)
+        self.set_gains(kp, kv)
         zero = np.zeros(chain.dof)
         self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
         self.coulomb_friction = checked_friction('coulomb_friction', coulomb_friction, chain.dof)
@@ -191,6 +191,8 @@ class _Law:
 
     def set_gains(self, kp, kv) -> None:
         self.kp, self.kv = checked_gains(kp, kv, self.chain.dof)
+        # As the compiled law reads them (one lane), made once here rather than at every sample.
+        self._gain_columns = (_column(self.kp), _column(self.kv))
 
     def torque(self, measured: Measurement, reference: ReferencePoint, gravity_ref: np.ndarray | None = None):
         """The command from the measured sample and the reference at t_n.
@@ -199,7 +201,7 @@ class _Law:
         """
         if self.gravity_feedforward and gravity_ref is None:
             raise GainError('PD + gravity needs the gravity feedforward Ĝ(q^d(t_n)) (gravity_feedforward)')
-        return _command_one(self.code, self._arrays, _column(self.kp), _column(self.kv),
+        return _command_one(self.code, self._arrays, *self._gain_columns,
                             np.asarray(measured.q_ref, dtype=float), np.asarray(measured.v_ref, dtype=float),
                             np.asarray(reference.a, dtype=float),
                             np.zeros(self.chain.dof) if gravity_ref is None else np.asarray(gravity_ref, dtype=float),

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 
+from ddarm.episodes.engine import run_episode, simulate_batch
 from ddarm.episodes.spec import EpisodeSpec
 
 # Issue 5's reference case: computed torque with the ω = 15 rule, trajectory 1, T = 1 s, Δ = 0.01 s, delay 1.
@@ -39,9 +40,6 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
     The first batch call of a process compiles the engine (or loads it from numba's cache): it
     runs on one episode before the timing and is reported as warmup_s.
     """
-    # The engine pulls in numba: only this command pays for importing it.
-    from ddarm.episodes.engine import run_episode, simulate_batch
-
     kp, kv = perturbed_gains(episodes, seed)
     threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), episodes)
     started = time.perf_counter()
