@@ -14,6 +14,7 @@ from sensor_msgs.msg import JointState
 
 from ddarm.ros.interface import SAMPLE_QOS, joint_state_msg
 from ddarm.ros import driver as ros_episode
+from ddarm.ros import node_parameters
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec, check_episode
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
@@ -55,7 +56,7 @@ class Sequence:
 
 @pytest.fixture
 def sequence(ros_context, tmp_path, monkeypatch):
-    monkeypatch.setattr(ros_episode, 'COMMAND_TIMEOUT', 3.0)  # the plant gives up on a command after 3 s
+    monkeypatch.setattr(node_parameters, 'COMMAND_TIMEOUT', 3.0)  # the plant gives up on a command after 3 s
     graph = Sequence(ros_context, tmp_path)
     yield graph
     graph.close()
