@@ -26,6 +26,11 @@ _JOINT_KINDS = {
     'JointModelRY': (REVOLUTE, (0.0, 1.0, 0.0)),
     'JointModelRZ': (REVOLUTE, (0.0, 0.0, 1.0)),
     'JointModelRevoluteUnaligned': (REVOLUTE, None),
+    # Continuous joints: Pinocchio's (cos θ, sin θ) configuration, here the angle θ itself.
+    'JointModelRUBX': (REVOLUTE, (1.0, 0.0, 0.0)),
+    'JointModelRUBY': (REVOLUTE, (0.0, 1.0, 0.0)),
+    'JointModelRUBZ': (REVOLUTE, (0.0, 0.0, 1.0)),
+    'JointModelRevoluteUnboundedUnaligned': (REVOLUTE, None),
     'JointModelPX': (PRISMATIC, (1.0, 0.0, 0.0)),
     'JointModelPY': (PRISMATIC, (0.0, 1.0, 0.0)),
     'JointModelPZ': (PRISMATIC, (0.0, 0.0, 1.0)),
@@ -63,14 +68,15 @@ class Chain:
 
 
 def chain_from_model(model: pin.Model) -> Chain:
-    """The arrays the compiled dynamics read, from a model of 1-DOF revolute or prismatic joints."""
+    """The arrays the compiled dynamics read, from a model of 1-DOF revolute (bounded or continuous) or prismatic
+    joints; positions are angles and lengths."""
     parent, kind, axis, rotation, translation = [], [], [], [], []
     for joint_id in range(1, model.njoints):
         joint = model.joints[joint_id]
         name = joint.shortname()
-        if name not in _JOINT_KINDS or joint.nq != 1 or joint.nv != 1 or joint.idx_v != joint_id - 1:
+        if name not in _JOINT_KINDS or joint.nv != 1 or joint.idx_v != joint_id - 1:
             raise ModelError(f'joint {model.names[joint_id]!r} is a {name}: the batch engine supports '
-                             f'1-DOF revolute and prismatic joints only')
+                             f'revolute, continuous and prismatic joints only')
         joint_kind, joint_axis = _JOINT_KINDS[name]
         parent.append(model.parents[joint_id] - 1)
         kind.append(joint_kind)
@@ -89,9 +95,10 @@ def chain_from_model(model: pin.Model) -> Chain:
 
 
 @lru_cache(maxsize=16)
-def load_chain(urdf: str | None) -> Chain:
-    """The chain of the URDF's (controller's) model, built once per process."""
-    return chain_from_model(load_arm(urdf).model)
+def load_chain(urdf: str | None, joints: tuple[str, ...] | None = None,
+               locked: tuple[tuple[str, float], ...] = ()) -> Chain:
+    """The chain of the URDF's model reduced to `joints` (the others `locked`), built once per process."""
+    return chain_from_model(load_arm(urdf, None, joints, locked).model)
 
 
 
