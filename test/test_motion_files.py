@@ -192,3 +192,180 @@ def test_yaml_1_2_names_are_names_where_yaml_1_1_reads_booleans(tmp_path):
     path.write_text(edited('joint_names', '[yes, true]'))
     with pytest.raises(MotionError, match='joint_names must be a non-empty list of names'):
         load_motion(path)
+
+
+# The waypoint form and `locked`: every new field read back as written, every bad one refused by its name.
+WAYPOINTS = """joint_names: [a, b]
+start: [0.0, 1.0]
+points:
+  - positions: [0.5, 0.5]
+    velocities: [1.0, -1.0]
+    time_from_start: 0.5
+  - positions: [1.0, -1.0]
+    velocities: [0.0, 0.0]
+    accelerations: [0.0, 0.0]
+    time_from_start: {sec: 1, nanosec: 250000000}
+locked: {c: 0.25, d: -1.5}
+"""
+
+
+def written(tmp_path, text: str, name: str = 'motion.yaml') -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_a_waypoint_file_loads_as_its_points(tmp_path):
+    from ddarm.motion.waypoints import WaypointMotion
+
+    loaded = load_motion(written(tmp_path, WAYPOINTS))
+    motion = loaded.motion
+    assert isinstance(motion, WaypointMotion)
+    assert loaded.joint_names == ('a', 'b') and loaded.locked == (('c', 0.25), ('d', -1.5))
+    assert motion.times.tolist() == [0.5, 1.25] and motion.duration == 1.25 and motion.dof == 2
+    assert motion.positions.tolist() == [[0.5, 0.5], [1.0, -1.0]]
+    assert motion.start.tolist() == [0.0, 1.0] and motion.q0.tolist() == [0.0, 1.0]
+    assert motion.qf.tolist() == [1.0, -1.0]
+    assert [v.tolist() for v in motion.velocities] == [[1.0, -1.0], [0.0, 0.0]]
+    assert motion.accelerations[0] is None and motion.accelerations[1].tolist() == [0.0, 0.0]
+
+
+def test_time_from_start_as_the_message_writes_it_is_the_same_time_in_seconds(tmp_path):
+    as_message = load_motion(written(tmp_path, WAYPOINTS, 'a.yaml')).motion
+    in_seconds = load_motion(written(tmp_path, WAYPOINTS.replace('{sec: 1, nanosec: 250000000}', '1.25'),
+                                     'b.yaml')).motion
+    assert bits(as_message.times) == bits(in_seconds.times)
+    times = np.linspace(-0.1, 1.5, 33)
+    for a, b in zip(as_message.sample(times), in_seconds.sample(times)):
+        assert bits(a) == bits(b)
+    # nanoseconds counted exactly and rounded once: 0.1 s is the double nearest 0.1
+    one_tenth = WAYPOINTS.replace('{sec: 1, nanosec: 250000000}', '{sec: 0, nanosec: 900000000}')
+    assert load_motion(written(tmp_path, one_tenth, 'c.yaml')).motion.times[-1] == 0.9
+
+
+def test_a_waypoint_file_without_start_starts_at_its_first_point(tmp_path):
+    text = """joint_names: [a]
+points:
+  - {positions: [0.25], velocities: [2.0], time_from_start: 0}
+  - {positions: [1.0], time_from_start: 0.5}
+"""
+    motion = load_motion(written(tmp_path, text)).motion
+    assert motion.start is None and motion.q0.tolist() == [0.25]
+    q, v, _ = motion.sample(0.0)
+    assert q.tolist() == [0.25] and v.tolist() == [1.5]  # point 1 has no velocities: the segment is linear
+
+
+def test_waypoint_floats_written_with_repr_read_back_bit_for_bit(tmp_path):
+    values = np.random.default_rng(3).normal(scale=[1e-300, 1e-8, 1.0, 1e8, 1e300], size=(6, 5))
+    rows = [f'  - positions: [{", ".join(repr(float(v)) for v in row)}]\n'
+            f'    velocities: [{", ".join(repr(float(v)) for v in row[::-1])}]\n'
+            f'    time_from_start: {repr(0.1 * (k + 1) / 3)}\n' for k, row in enumerate(values)]
+    rows[-1] = rows[-1].replace(rows[-1].splitlines()[1], '    velocities: [0.0, 0.0, 0.0, 0.0, 0.0]')
+    text = ('joint_names: [j0, j1, j2, j3, j4]\nstart: [0.0, -0.0, 5e-324, 1e-05, 3.141592653589793]\npoints:\n'
+            + ''.join(rows))
+    motion = load_motion(written(tmp_path, text)).motion
+    assert bits(motion.positions) == bits(values)
+    assert all(bits(v) == bits(row[::-1]) for v, row in zip(motion.velocities[:-1], values[:-1]))
+    assert bits(motion.times) == bits([0.1 * (k + 1) / 3 for k in range(6)])
+    assert bits(motion.start) == bits([0.0, -0.0, 5e-324, 1e-05, np.pi])
+
+
+def test_locked_joints_go_with_a_bang_bang_motion_too_and_default_to_none(tmp_path):
+    assert load_motion(written(tmp_path, GOOD, 'a.yaml')).locked == ()
+    assert load_motion(written(tmp_path, GOOD + 'locked: {}\n', 'b.yaml')).locked == ()
+    loaded = load_motion(written(tmp_path, GOOD + 'locked: {z: 1, y: 0.5}\n', 'c.yaml'))
+    assert loaded.locked == (('z', 1.0), ('y', 0.5)) and isinstance(loaded.locked[0][1], float)
+    assert loaded.motion.q0.tolist() == [0.0, 1.0]
+
+
+def waypoints_edited(old: str, new: str) -> str:
+    assert old in WAYPOINTS
+    return WAYPOINTS.replace(old, new)
+
+
+LAST_TIME = 'time_from_start: {sec: 1, nanosec: 250000000}'
+
+
+@pytest.mark.parametrize('text, field', [
+    # the two forms
+    (WAYPOINTS + 'profile: bang_bang\n', 'both profile'),
+    (GOOD + 'points: []\n', 'both profile'),
+    (WAYPOINTS + 'duration: 1.0\n', "unknown key 'duration' (a waypoint motion file"),
+    (WAYPOINTS + 'goal: [1.0, 1.0]\n', "unknown key 'goal' (a waypoint motion file"),
+    (edited('profile', None), "missing key 'profile' (or points, for a waypoint motion)"),
+    (GOOD.replace('start', 'begin'), "unknown key 'begin' (a bang-bang motion file"),
+    # points
+    (waypoints_edited('points:\n', 'points: []\n').split('  - positions')[0] + 'locked: {}\n', 'points must be'),
+    ('joint_names: [a]\npoints: 3\n', 'points must be a non-empty list'),
+    ('joint_names: [a]\npoints: [3]\n', 'points[0] must be a mapping'),
+    (waypoints_edited('    time_from_start: 0.5', '    time_from_start: 0.5\n    effort: [0.0, 0.0]'),
+     "points[0]: unknown key 'effort'"),
+    (waypoints_edited('  - positions: [0.5, 0.5]\n    velocities', '  - velocities'),
+     "points[0]: missing key 'positions'"),
+    (waypoints_edited('    time_from_start: 0.5\n', ''), "points[0]: missing key 'time_from_start'"),
+    (waypoints_edited('positions: [1.0, -1.0]', 'positions: [1.0]'), 'points[1].positions must list one position'),
+    (waypoints_edited('positions: [1.0, -1.0]', 'positions: 1.0'), 'points[1].positions must list'),
+    (waypoints_edited('velocities: [1.0, -1.0]', 'velocities: [1.0, -1.0, 0.0]'), 'points[0].velocities must list'),
+    (waypoints_edited('velocities: [1.0, -1.0]', 'velocities: [1.0, .nan]'), 'points[0].velocities[1]'),
+    (waypoints_edited('velocities: [1.0, -1.0]', 'velocities: [1.0, fast]'), 'points[0].velocities[1]'),
+    (waypoints_edited('accelerations: [0.0, 0.0]', 'accelerations: [0.0, .inf]'), 'points[1].accelerations[1]'),
+    (waypoints_edited('positions: [0.5, 0.5]', 'positions: [0.5, -.inf]'), 'points[0].positions[1]'),
+    (waypoints_edited('    velocities: [1.0, -1.0]\n', '    accelerations: [1.0, -1.0]\n'),
+     'points[0] has accelerations without velocities'),
+    # times
+    (waypoints_edited('time_from_start: 0.5', 'time_from_start: -0.5'),
+     'points[0].time_from_start must not be negative'),
+    (waypoints_edited('time_from_start: 0.5', 'time_from_start: soon'), 'points[0].time_from_start must be a finite'),
+    (waypoints_edited('time_from_start: 0.5', 'time_from_start: .nan'), 'points[0].time_from_start must be a finite'),
+    (waypoints_edited('time_from_start: 0.5', 'time_from_start: 1:30'), 'points[0].time_from_start must be a finite'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: 1}'), 'points[1].time_from_start must be a number of seconds'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: 1, nanosec: 0, ns: 1}'), 'points[1].time_from_start must be'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: 1, nanosec: 1000000000}'),
+     'points[1].time_from_start.nanosec must be an integer in [0, 999999999]'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: -1, nanosec: 0}'), 'points[1].time_from_start.sec'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: 1.0, nanosec: 0}'), 'points[1].time_from_start.sec'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: true, nanosec: 0}'), 'points[1].time_from_start.sec'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: {sec: 2147483648, nanosec: 0}'), 'points[1].time_from_start.sec'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: 0.25'), 'points[1].time_from_start 0.25 s is not after points[0]'),
+    (waypoints_edited(LAST_TIME, 'time_from_start: 0.5'), 'points[1].time_from_start 0.5 s is not after points[0]'),
+    (waypoints_edited('start: [0.0, 1.0]\n', ''), 'points[0].time_from_start is 0.5 s, not 0: give start'),
+    (waypoints_edited('time_from_start: 0.5', 'time_from_start: 0'), 'points[0].time_from_start is 0.0 s with a start'),
+    ('joint_names: [a]\npoints:\n  - {positions: [1.0], time_from_start: 0.0}\n', 'no motion'),
+    # the end, held at rest
+    (waypoints_edited('velocities: [0.0, 0.0]', 'velocities: [0.0, 0.1]'), 'points[1] (the last) has velocities'),
+    (waypoints_edited('accelerations: [0.0, 0.0]', 'accelerations: [-2.0, 0.0]'), 'points[1] (the last) has accel'),
+    # start
+    (waypoints_edited('start: [0.0, 1.0]', 'start: [0.0]'), 'start must list one position per joint'),
+    (waypoints_edited('start: [0.0, 1.0]', 'start:'), 'start must list one position per joint'),
+    (waypoints_edited('start: [0.0, 1.0]', 'start: [0.0, .nan]'), 'start[1]'),
+    # locked, in either form
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: [c, d]'), 'locked must be a mapping'),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked:'), 'locked must be a mapping'),
+    (GOOD + 'locked: 0.5\n', 'locked must be a mapping'),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {1: 0.25}'), 'locked: 1 is not a joint name'),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {"": 0.25}'), "locked: '' is not a joint name"),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {? [c]: 0.25}'), 'is not a joint name'),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {c: .nan}'), "locked['c'] must be a finite number"),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {c: up}'), "locked['c'] must be a finite number"),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {c: [0.0]}'), "locked['c'] must be a finite number"),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {c: 0.0, c: 1.0}'), "duplicate key 'c'"),
+    (waypoints_edited('locked: {c: 0.25, d: -1.5}', 'locked: {b: 0.0}'), "locked['b']: the motion drives 'b'"),
+    (GOOD + 'locked: {a: 0.0}\n', "locked['a']: the motion drives 'a'"),
+])
+def test_every_refusal_of_the_waypoint_form_and_locked_names_the_file_and_the_field(tmp_path, text, field):
+    path = written(tmp_path, text, 'bad.yaml')
+    with pytest.raises(MotionError) as refused:
+        load_motion(path)
+    message = str(refused.value)
+    assert message.startswith(f'{path}: ') and field in message, message
+
+
+def test_a_refused_waypoint_file_is_one_line_from_the_command(tmp_path, capsys):
+    """A user's mistake in a motion file is a refusal, never a traceback: the same MotionError the CLI prints."""
+    path = written(tmp_path, waypoints_edited('velocities: [0.0, 0.0]', 'velocities: [0.0, 0.1]'))
+    code = 'import sys\nfrom ddarm.motion.files import load_motion\nload_motion(sys.argv[1])\n'
+    done = subprocess.run([sys.executable, '-c', code, str(path)], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parent.parent)
+    assert done.returncode != 0 and done.stderr.strip().splitlines()[-1].startswith(
+        f'ddarm.motion.programmed.MotionError: {path}: points[1] (the last) has velocities')
+    assert 'During handling' not in done.stderr  # no chained traceback under the refusal

@@ -1,5 +1,7 @@
 """Motion files: a programmed motion and the joints it drives, as YAML.
 
+Two forms. The bang-bang motion of spec §4:
+
 ```yaml
 joint_names: [joint1, joint2, joint3]  # the controlled joints, in the order of start and goal
 duration: 1.0                          # T, s
@@ -7,6 +9,24 @@ profile: bang_bang                     # s(t/T) of spec §4
 start: [0.0, 1.0471975511965976, -2.0943951023931953]  # q(0), rad
 goal: [1.5707963267948966, 0.0, 0.0]                    # q(T), rad
 ```
+
+Or waypoints, in the shape of a trajectory_msgs/JointTrajectory, splined as ros2_controllers' joint trajectory
+controller does (ddarm.motion.waypoints):
+
+```yaml
+joint_names: [joint1, joint2, joint3]
+start: [0.0, 0.0, 0.0]                 # optional: q(0), at rest; required when points[0] is later than t = 0
+points:
+  - positions: [0.1, 0.2, 0.3]
+    velocities: [0.0, 0.5, 0.0]        # optional
+    accelerations: [0.0, 0.0, 0.0]     # optional, only with velocities
+    time_from_start: 0.5               # s, or {sec: 0, nanosec: 500000000} as the message writes it
+  - positions: [0.2, 0.4, 0.6]
+    time_from_start: 1.0               # the last point: the goal, held after it (its velocities, if any, zero)
+```
+
+Either form may add `locked: {joint4: 0.0}`: positions of the arm's other movable joints, which the motion
+does not drive and the arm holds there.
 
 Every refusal is a MotionError naming the file and the field: a motion file is edited by hand, and a
 wrong one must never become a different motion silently.
@@ -24,17 +44,27 @@ import numpy as np
 import yaml
 
 from ddarm.motion.programmed import MotionError, ProgrammedMotion
+from ddarm.motion.waypoints import WaypointMotion
 
 PROFILES = ('bang_bang',)
-FIELDS = ('joint_names', 'duration', 'profile', 'start', 'goal')
+FIELDS = ('joint_names', 'duration', 'profile', 'start', 'goal')  # the bang-bang form's, each required
+WAYPOINT_FIELDS = ('joint_names', 'points')  # the waypoint form's required fields
+WAYPOINT_OPTIONAL = ('start',)
+OPTIONAL = ('locked',)  # either form's
+POINT_FIELDS = ('positions', 'velocities', 'accelerations', 'time_from_start')
+# builtin_interfaces/Duration: sec is an int32, nanosec a uint32 below one second.
+_SEC_MAX = 2**31 - 1
+_NANOSEC_PER_SEC = 1_000_000_000
 
 
 @dataclass(frozen=True)
 class MotionFile:
-    """A motion file's content: the joints, by name, and their motion, in that order."""
+    """A motion file's content: the joints, by name, their motion, in that order, and the locked joints' positions
+    (name, q) in the file's order."""
 
     joint_names: tuple[str, ...]
-    motion: ProgrammedMotion
+    motion: ProgrammedMotion | WaypointMotion
+    locked: tuple[tuple[str, float], ...] = ()
 
 
 class Unusable:
@@ -135,52 +165,133 @@ def load_motion(path: Path | str) -> MotionFile:
     """The motion file at `path`; MotionError names the file and the field of anything it cannot use."""
     path = Path(path)
     try:
-        document = yaml.load(path.read_text(), Loader=DataLoader)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as error:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
         raise MotionError(f'{path}: cannot read the motion file: {error}') from error
+    return parse_motion(text, str(path))
+
+
+def parse_motion(text: str, source: str) -> MotionFile:
+    """The motion file whose text is `text`; `source` names it (its path) first in every MotionError."""
+    try:
+        document = yaml.load(text, Loader=DataLoader)
+    except (yaml.YAMLError, RecursionError) as error:
+        raise MotionError(f'{source}: cannot read the motion file: {error}') from error
     if not isinstance(document, dict):
-        raise MotionError(f'{path}: a motion file is a mapping of {", ".join(FIELDS)}, got {type(document).__name__}')
-    unknown = [key for key in document if key not in FIELDS]
+        raise MotionError(f'{source}: a motion file is a mapping of {", ".join(FIELDS)} (or of '
+                          f'{", ".join(WAYPOINT_FIELDS)}), got {type(document).__name__}')
+    if 'profile' in document and 'points' in document:
+        raise MotionError(f'{source}: both profile (a bang-bang motion: duration, start, goal) and points (a '
+                          'waypoint motion): a motion file is one or the other')
+    waypoints = 'points' in document
+    required, optional = (WAYPOINT_FIELDS, WAYPOINT_OPTIONAL + OPTIONAL) if waypoints else (FIELDS, OPTIONAL)
+    unknown = [key for key in document if key not in required + optional]
     if unknown:
-        raise MotionError(f'{path}: unknown key {unknown[0]!r} (a motion file has {", ".join(FIELDS)})')
-    missing = [key for key in FIELDS if key not in document]
+        form = 'a waypoint motion file (points)' if waypoints else 'a bang-bang motion file (profile)'
+        raise MotionError(f'{source}: unknown key {unknown[0]!r} ({form} has {", ".join(required)}, and optionally '
+                          f'{", ".join(optional)})')
+    missing = [key for key in required if key not in document]
     if missing:
-        raise MotionError(f'{path}: missing key {missing[0]!r}')
+        hint = ' (or points, for a waypoint motion)' if missing[0] == 'profile' else ''
+        raise MotionError(f'{source}: missing key {missing[0]!r}{hint}')
     names = document['joint_names']
     if (not isinstance(names, list) or not names
             or not all(isinstance(name, str) and name for name in names)):
-        raise MotionError(f'{path}: joint_names must be a non-empty list of names, got {_shown(names)}')
+        raise MotionError(f'{source}: joint_names must be a non-empty list of names, got {_shown(names)}')
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
-        raise MotionError(f'{path}: joint_names names {repeated} more than once')
-    duration = _number(path, 'duration', document['duration'])
+        raise MotionError(f'{source}: joint_names names {repeated} more than once')
+    motion = _waypoint_motion(source, document, len(names)) if waypoints else _bang_bang(source, document, len(names))
+    return MotionFile(tuple(names), motion, _locked(source, document.get('locked', {}), names))
+
+
+def _bang_bang(source: str, document: dict, joints: int) -> ProgrammedMotion:
+    duration = _number(source, 'duration', document['duration'])
     if not duration > 0:
-        raise MotionError(f'{path}: duration must be positive, got {duration!r}')
+        raise MotionError(f'{source}: duration must be positive, got {duration!r}')
     if document['profile'] not in PROFILES:
-        raise MotionError(f'{path}: profile must be one of {list(PROFILES)}, got {_shown(document["profile"])}')
-    start, goal = (_positions(path, field, document[field], len(names)) for field in ('start', 'goal'))
-    return MotionFile(tuple(names), ProgrammedMotion(start, goal, duration))
+        raise MotionError(f'{source}: profile must be one of {list(PROFILES)}, got {_shown(document["profile"])}')
+    start, goal = (_positions(source, field, document[field], joints) for field in ('start', 'goal'))
+    return ProgrammedMotion(start, goal, duration)
 
 
-def _number(path: Path, field: str, value) -> float:
+def _waypoint_motion(source: str, document: dict, joints: int) -> WaypointMotion:
+    points = document['points']
+    if not isinstance(points, list) or not points:
+        raise MotionError(f'{source}: points must be a non-empty list of points (mappings of '
+                          f'{", ".join(POINT_FIELDS)}), got {_shown(points)}')
+    times, positions, velocities, accelerations = [], [], [], []
+    for i, point in enumerate(points):
+        where = f'points[{i}]'
+        if not isinstance(point, dict):
+            raise MotionError(f'{source}: {where} must be a mapping of {", ".join(POINT_FIELDS)}, got {_shown(point)}')
+        unknown = [key for key in point if key not in POINT_FIELDS]
+        if unknown:
+            raise MotionError(f'{source}: {where}: unknown key {unknown[0]!r} (a point has positions, '
+                              'time_from_start, and optionally velocities, accelerations)')
+        for key in ('positions', 'time_from_start'):
+            if key not in point:
+                raise MotionError(f'{source}: {where}: missing key {key!r}')
+        times.append(_time_from_start(source, f'{where}.time_from_start', point['time_from_start']))
+        positions.append(_positions(source, f'{where}.positions', point['positions'], joints))
+        for key, given in (('velocities', velocities), ('accelerations', accelerations)):
+            given.append(_positions(source, f'{where}.{key}', point[key], joints, 'number') if key in point else None)
+    start = _positions(source, 'start', document['start'], joints) if 'start' in document else None
+    try:
+        return WaypointMotion(np.array(times), np.array(positions), tuple(velocities), tuple(accelerations), start)
+    except MotionError as error:  # the points' order and ends: the message names the point and the field
+        raise MotionError(f'{source}: {error}') from None
+
+
+def _time_from_start(source: str, field: str, value) -> float:
+    """A point's time in s: a number, or builtin_interfaces/Duration's {sec, nanosec} as the message has it."""
+    if isinstance(value, dict):
+        if set(value) != {'sec', 'nanosec'}:
+            raise MotionError(f'{source}: {field} must be a number of seconds or a mapping of exactly sec and '
+                              f'nanosec, got {_shown(value)}')
+        sec, nanosec = value['sec'], value['nanosec']
+        for key, number, largest in (('sec', sec, _SEC_MAX), ('nanosec', nanosec, _NANOSEC_PER_SEC - 1)):
+            if not (isinstance(number, int) and not isinstance(number, bool) and 0 <= number <= largest):
+                raise MotionError(f'{source}: {field}.{key} must be an integer in [0, {largest}], got {_shown(number)}')
+        # The nanoseconds counted exactly, rounded once.
+        return (sec * _NANOSEC_PER_SEC + nanosec) / _NANOSEC_PER_SEC
+    seconds = _number(source, field, value)
+    if seconds < 0:
+        raise MotionError(f'{source}: {field} must not be negative, got {seconds!r}')
+    return seconds
+
+
+def _locked(source: str, locked, names: list) -> tuple[tuple[str, float], ...]:
+    if not isinstance(locked, dict):
+        raise MotionError(f'{source}: locked must be a mapping of joint name to position, got {_shown(locked)}')
+    for name in locked:
+        if not (isinstance(name, str) and name):
+            raise MotionError(f'{source}: locked: {_shown(name)} is not a joint name')
+        if name in names:
+            raise MotionError(f'{source}: locked[{name!r}]: the motion drives {name!r} (it is in joint_names); '
+                              'a joint is either driven or locked')
+    return tuple((name, _number(source, f'locked[{name!r}]', value)) for name, value in locked.items())
+
+
+def _number(source: str, field: str, value) -> float:
     # bool is an int to Python, never a number to a motion file
     if isinstance(value, int) and not isinstance(value, bool):
         try:
             value = float(value)
         except OverflowError:
-            raise MotionError(f'{path}: {field} must be a finite number, got an integer beyond the range of a float') \
-                from None
+            raise MotionError(f'{source}: {field} must be a finite number, got an integer beyond the range of a '
+                              'float') from None
     if not isinstance(value, float) or not math.isfinite(value):
         hint = ''
         if isinstance(value, str) and re.match(r'[-+]?\.?[0-9]', value):
             hint = (' (text, not a number: numbers are read as YAML 1.2 writes them, e.g. 10, -0.5, 1e-05; never '
                     "as YAML 1.1's 1:00, 017, 0b11 or 1_0)")
-        raise MotionError(f'{path}: {field} must be a finite number, got {_shown(value)}{hint}')
+        raise MotionError(f'{source}: {field} must be a finite number, got {_shown(value)}{hint}')
     return value
 
 
-def _positions(path: Path, field: str, values, joints: int) -> np.ndarray:
+def _positions(source: str, field: str, values, joints: int, what: str = 'position') -> np.ndarray:
     if not isinstance(values, list) or len(values) != joints:
-        raise MotionError(f'{path}: {field} must list one position per joint of joint_names ({joints}), '
+        raise MotionError(f'{source}: {field} must list one {what} per joint of joint_names ({joints}), '
                           f'got {_shown(values)}')
-    return np.array([_number(path, f'{field}[{i}]', value) for i, value in enumerate(values)])
+    return np.array([_number(source, f'{field}[{i}]', value) for i, value in enumerate(values)])

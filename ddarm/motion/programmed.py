@@ -70,7 +70,7 @@ PAPER_TRAJECTORIES = tuple(sorted(_PAPER_MOTIONS))
 
 
 @lru_cache(maxsize=None)
-def _paper_motion(number: int):
+def paper_motion_file(number: int):
     """The motion file of trajectory `number` (a ddarm.motion.files.MotionFile), read once."""
     from ddarm.motion.files import load_motion  # files.py imports this module: a top-level import would be circular
 
@@ -81,14 +81,14 @@ def _paper_motion(number: int):
 
 def paper_trajectory(number: int, duration: float) -> ProgrammedMotion:
     """Trajectory `number` (1 or 2) of the paper's section 3, of duration T."""
-    motion = _paper_motion(number).motion
+    motion = paper_motion_file(number).motion
     # Fresh arrays, as every call returned before the motions were files: a caller may change its copy.
     return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
 
 
 def paper_motion_joints(number: int) -> tuple[str, ...]:
     """The joints trajectory `number` drives, by name, in the order of its positions (its file's joint_names)."""
-    return _paper_motion(number).joint_names
+    return paper_motion_file(number).joint_names
 
 
 def sample_count(duration: float, period: float) -> int:
