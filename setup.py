@@ -1,6 +1,6 @@
 """ddarm: one ament_python package holding the ddarm_sim, ddarm_control and ddarm_tuner Python packages."""
 
-from glob import glob
+from pathlib import Path
 
 from setuptools import find_packages, setup
 
@@ -24,7 +24,9 @@ setup(
         ('lib/ddarm_control', ['scripts/pd_gravity', 'scripts/computed_torque']),
         ('lib/ddarm_tuner', ['scripts/tuner']),
         (f'share/{PACKAGE}', ['package.xml']),
-        (f'share/{PACKAGE}/config', sorted(glob('config/*'))),
+        # config/ and its example arms (config/arms/<arm>/), each folder's files where ros2 finds the share.
+        *((f'share/{PACKAGE}/{folder.as_posix()}', sorted(str(path) for path in folder.iterdir() if path.is_file()))
+          for folder in sorted({Path('config'), *(path.parent for path in Path('config').rglob('*') if path.is_file())})),
     ],
     # Versions seen working together on Python 3.11 (ROS 2 Jazzy from PyPI).
     install_requires=[
