@@ -15,7 +15,7 @@ from ddarm.physics.dynamics import (chain_from_model, forward_dynamics, inverse_
 from ddarm.motion.programmed import ProgrammedMotion
 from ddarm.episodes.engine import MAX_BATCH, BatchError, run_episode, simulate_batch
 from ddarm.cli.main import main
-from ddarm.episodes.spec import EpisodeSpec, plan_motion
+from ddarm.episodes.spec import EpisodeSpec, plan_episode, plan_motion
 from reference_episode import reference_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
@@ -174,12 +174,14 @@ GENERIC_URDF = """<?xml version="1.0"?>
 def test_any_serial_urdf_arm_runs_as_in_the_reference_loop(tmp_path, controller):
     urdf = tmp_path / 'generic5.urdf'
     urdf.write_text(GENERIC_URDF)
-    motion = ProgrammedMotion(np.array([0.1, 0.0, -0.3, 0.1, 0.5]), np.array([0.8, 0.2, 0.4, -0.1, -0.5]), 1.0)
+    motion = tmp_path / 'generic5-motion.yaml'
+    motion.write_text('joint_names: [j1, j2, j3, j4, j5]\nduration: 1.0\nprofile: bang_bang\n'
+                      'start: [0.1, 0.0, -0.3, 0.1, 0.5]\ngoal: [0.8, 0.2, 0.4, -0.1, -0.5]\n')
     kp = np.array([[100.0] * 5, [150.0, 200.0, 80.0, 300.0, 60.0]])
     kv = np.array([[20.0] * 5, [25.0, 30.0, 15.0, 35.0, 12.0]])
-    template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], urdf=str(urdf), delay=1,
+    template = EpisodeSpec(controller=controller, kp=kp[0], kv=kv[0], urdf=str(urdf), motion=str(motion), delay=1,
                            torque_limit='paper', mass_scale=(1.1, 0.9, 1.0, 1.2, 0.8))
-    plan = plan_motion(template, motion, np.arange(101) * 0.01)
+    plan = plan_episode(template)
     batch = simulate_batch(template, kp, kv, plan=plan)
     for member in range(2):
         scalar = reference_episode(dataclasses.replace(template, kp=kp[member], kv=kv[member]), plan)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from pathlib import Path
 
 import numpy as np
 
 from ddarm.control.laws import CONTROLLERS
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega
-from ddarm.motion.programmed import PAPER_TRAJECTORIES, paper_trajectory
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
+from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
 
 
@@ -22,8 +24,17 @@ def finite(text: str) -> float:
 def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
     """The options that define an episode (the spec's defaults, §14); `gains` adds --omega / --kp --kv."""
     parser.add_argument('--controller', choices=CONTROLLERS, required=True)
-    parser.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES, default=1)
-    parser.add_argument('--duration', type=finite, default=1.0, metavar='T', help='T in s (default 1)')
+    parser.add_argument('--urdf', metavar='FILE', help="the plant's arm (default: the paper's, config/ddarm.urdf)")
+    parser.add_argument('--model-urdf', metavar='FILE',
+                        help="the controller's model of the arm, when it differs from the plant (default: --urdf)")
+    motion = parser.add_mutually_exclusive_group()
+    motion.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES,
+                        help="the paper's motion (default 1, without --motion)")
+    motion.add_argument('--motion', metavar='FILE.yaml',
+                        help='a motion file: the controlled joints and their motion (the others are locked)')
+    parser.add_argument('--duration', type=finite, metavar='T',
+                        help="T in s (default: the motion's; the paper's is 1); a bang-bang motion is stretched to "
+                             "T, waypoints are held after their last point")
     parser.add_argument('--period', type=finite, default=0.01, metavar='DT',
                         help='sampling period Δ in s (default 0.01)')
     if gains:
@@ -39,6 +50,8 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
     limits = parser.add_mutually_exclusive_group()
     limits.add_argument('--limited', action='store_true',
                         help="the paper's torque limits: 2 x max nominal torque per joint")
+    limits.add_argument('--urdf-limits', action='store_true',
+                        help="the plant URDF's <limit effort> of each joint")
     limits.add_argument('--torque-limit', type=finite, nargs='+', metavar='N',
                         help='torque limits in N m, one per joint')
     parser.add_argument('--external-torque', type=finite, nargs='+', metavar='PZ',
@@ -51,24 +64,33 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
                         help=f'RK4 steps per sampling period (default {DEFAULT_SUBSTEPS})')
 
 
+def absolute_path(text: str | None) -> str | None:
+    return None if text is None else str(Path(text).expanduser().absolute())
+
+
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
+    """The episode the options define; gains from --omega (the ω rule) or --kp/--kv, else placeholders."""
+    if args.torque_limit is not None:
+        torque_limit = args.torque_limit
+    else:
+        torque_limit = 'paper' if args.limited else 'urdf' if args.urdf_limits else 'none'
+    spec = EpisodeSpec(
+        controller=args.controller, kp=(1.0,), kv=(1.0,), trajectory=args.trajectory or 1, duration=args.duration,
+        period=args.period, delay=args.delay, tau=args.tau, torque_limit=torque_limit,
+        external_torque=args.external_torque, viscous_friction=args.viscous_friction,
+        coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps,
+        urdf=absolute_path(args.urdf), model_urdf=absolute_path(args.model_urdf), motion=absolute_path(args.motion))
     if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
-        kp = kv = (1.0,) * len(paper_trajectory(args.trajectory, args.duration).q0)
+        kp = kv = (1.0,) * len(arm_joints(spec)[0])
     elif args.omega is not None:
         if args.kv is not None:
             raise EpisodeError('--kv goes with --kp; --omega sets both gains from the ω rule')
-        final = paper_trajectory(args.trajectory, args.duration).qf
-        kp, kv = gains_from_omega(args.controller, args.omega, final_position=final)
+        kp, kv = gains_from_omega(spec, args.omega)
     else:
         if args.kv is None:
             raise EpisodeError('--kp needs --kv')
         kp, kv = args.kp, args.kv
-    return EpisodeSpec(
-        controller=args.controller, kp=kp, kv=kv, trajectory=args.trajectory, duration=args.duration,
-        period=args.period, delay=args.delay, tau=args.tau,
-        torque_limit='paper' if args.limited else (args.torque_limit or 'none'),
-        external_torque=args.external_torque, viscous_friction=args.viscous_friction,
-        coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps)
+    return dataclasses.replace(spec, kp=kp, kv=kv)
 
 
 def add_output_arguments(parser: argparse.ArgumentParser) -> None:

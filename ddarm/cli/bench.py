@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from ddarm.episodes.bench import GAIN_SPREAD, SCALAR_EPISODES, run_bench
+from ddarm.cli.arguments import absolute_path
+from ddarm.episodes.bench import GAIN_SPREAD, SCALAR_EPISODES, reference_case, run_bench
 
 
 
@@ -23,7 +24,8 @@ def _count(name: str):
 
 
 def command_bench(args: argparse.Namespace) -> int:
-    figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads)
+    template = reference_case(absolute_path(args.urdf), absolute_path(args.motion))
+    figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads, template)
     if args.json:
         print(json.dumps(figures))
         return 0
@@ -53,5 +55,8 @@ def add_bench_parser(commands) -> None:
     bench.add_argument('--seed', type=int, default=0, help='seed of the gain perturbation (0)')
     bench.add_argument('--threads', type=_count('MAX_THREADS'), metavar='T',
                        help='threads of the batch engine (the cores available)')
+    bench.add_argument('--urdf', metavar='FILE', help="another arm (default: the paper's); with --motion")
+    bench.add_argument('--motion', metavar='FILE.yaml', help="the motion on that arm (default: the paper's "
+                       'trajectory 1)')
     bench.add_argument('--json', action='store_true', help='print one JSON object')
     bench.set_defaults(handler=command_bench)

@@ -17,9 +17,8 @@ def command_episode(args: argparse.Namespace) -> int:
     if args.bag and not (args.ros or args.realtime):
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
     spec = episode_spec(args)
-    check_episode(spec)
+    warnings = list(check_episode(spec).warnings)
     started = time.perf_counter()
-    warnings = []
     if args.ros or args.realtime:
         from ddarm.ros.driver import realtime_warnings  # ROS only when asked for
         from ddarm.ros.session import run_graph_episode
@@ -28,7 +27,7 @@ def command_episode(args: argparse.Namespace) -> int:
                                    command=shlex.join(['ddarm', *args.argv]))
         transport = 'ros-realtime' if args.realtime else 'ros-lockstep'
         if args.realtime:
-            warnings = realtime_warnings(result.plant_report)
+            warnings += realtime_warnings(result.plant_report)
     else:
         result = run_episode(spec)
         transport = 'in-process'

@@ -21,6 +21,7 @@ from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.cli.bench import add_bench_parser
+from ddarm.cli.motion import add_motion_parser
 from ddarm.interrupts import Interrupted, stop_on_signals
 
 
@@ -42,7 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
                                              'and torques')
     add_episode_arguments(omega, gains=False)
     omega.add_argument('--max-error', type=finite, nargs='+', required=True, metavar='DEG',
-                       help='permitted steady-state error in degrees (one, or one per joint)')
+                       help='permitted steady-state error in degrees, mm for a prismatic joint (one, or one per '
+                            'joint)')
     omega.add_argument('--disturbance', type=finite, nargs='+', metavar='PZ',
                        help='constant external joint torques P^z in N m (same as --external-torque)')
     omega.add_argument('--mass-error', type=finite, nargs='+', metavar='E',
@@ -86,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
                                              '(then --ros-args ...)')
     tuner.set_defaults(handler=command_tuner, takes_ros_arguments=True)
     add_bench_parser(commands)
+    add_motion_parser(commands)
     return parser
 
 

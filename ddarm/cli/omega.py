@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import shlex
+import sys
 
 import numpy as np
 
@@ -34,15 +35,19 @@ def command_omega(args: argparse.Namespace) -> int:
         spec = dataclasses.replace(spec, mass_scale=tuple(1.0 + e for e in args.mass_error))
     if args.disturbance is not None:
         spec = dataclasses.replace(spec, external_torque=tuple(args.disturbance))
-    check_episode(spec)
-    choice = omega_procedure(spec, np.radians(args.max_error), args.torque_factor, args.omega_step,
-                             args.omega_max)
+    plan = check_episode(spec)
+    for warning in plan.warnings:
+        print(f'ddarm omega: WARNING: {warning}', file=sys.stderr)
+    # Degrees for a revolute joint, millimetres for a prismatic one: both to SI.
+    prismatic = np.array(plan.prismatic, dtype=bool)
+    permitted = np.where(prismatic, np.asarray(args.max_error) * 1e-3, np.radians(args.max_error))
+    choice = omega_procedure(spec, permitted, args.torque_factor, args.omega_step, args.omega_max)
     with run_folder('omega', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
-        report = finish_omega(run, spec, choice, args.out)
+        report = finish_omega(run, spec, plan, choice, args.out)
     if args.json:
         print(json.dumps(report))
         return 0
-    print(f"{spec.controller}: ω_min = {choice.omega_min:.6g} (steady-state errors at ω_min, deg: "
+    print(f"{spec.controller}: ω_min = {choice.omega_min:.6g} (steady-state errors at ω_min, deg or mm: "
           f"{format_vector(report['steady_state_error_at_omega_min_deg'])})")
     for step in choice.steps:
         print(f'  ω = {step.omega:8.4g}  max |P| / limit = {step.max_torque_ratio_to_limit:.3f}  '

@@ -4,14 +4,19 @@ from __future__ import annotations
 
 
 def format_vector(values) -> str:
-    return '(' + ', '.join(f'{value:.6g}' for value in values) + ')'
+    return '(' + ', '.join('-' if value is None else f'{value:.6g}' for value in values) + ')'
 
 
 def print_summary(summary: dict) -> None:
     spec = summary['spec']
-    print(f"{spec['controller']}  trajectory {spec['trajectory']}  T = {spec['duration']} s  "
+    motion = spec.get('motion') or f"trajectory {spec['trajectory']}"
+    print(f"{spec['controller']}  {motion}  T = {spec['duration']} s  "
           f"Δ = {spec['period']} s  delay {spec['delay']}  τ = {spec['tau']} s  "
           f"torque limit {spec['torque_limit']}")
+    if spec.get('urdf') or spec.get('model_urdf'):
+        print(f"  arm {spec.get('urdf') or 'config/ddarm.urdf'}"
+              + (f"  model {spec['model_urdf']}" if spec.get('model_urdf') else ''))
+    print(f"  joints {', '.join(summary.get('joint_names', []))}")
     print(f"  kp = {format_vector(spec['kp'])}  kv = {format_vector(spec['kv'])}")
     print(f"  I1 (2.5) = {summary['I1']:.6g}   I2 = {summary['I2']:.6g}   I (3.2) = {summary['I']:.6g}")
     if summary['diverged']:
@@ -20,5 +25,7 @@ def print_summary(summary: dict) -> None:
     if summary['max_abs_error_deg'] is not None:
         print(f"  max |e| (deg) = {format_vector(summary['max_abs_error_deg'])}   "
               f"max |P| (N m) = {format_vector(summary['max_abs_torque'])}")
+    if summary.get('saturated_joints'):
+        print(f"  at their torque limit: {', '.join(summary['saturated_joints'])}")
     for warning in summary.get('warnings', []):
         print(f'  WARNING: {warning}')

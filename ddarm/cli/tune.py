@@ -10,6 +10,7 @@ import sys
 from ddarm.cli.arguments import episode_spec
 from ddarm.cli.output import format_vector
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
+from ddarm.episodes.spec import check_episode
 
 
 def index_name(text: str) -> str:
@@ -26,6 +27,8 @@ def command_tune(args: argparse.Namespace) -> int:
 
     check_outputs(args.out, args.runs, args.run)
     template = episode_spec(args)
+    for warning in check_episode(template).warnings:  # refusals first: nothing is searched before they are fixed
+        print(f'ddarm tune: WARNING: {warning}', file=sys.stderr)
     progress = None if args.json else sys.stderr
     if progress:
         print(f'searching ({args.method}, budget {args.budget} episodes, starts ω = {args.omegas}) …',
@@ -62,11 +65,18 @@ def print_tuning(report: dict, tuning) -> None:
           f"episodes in {tuning.wall_time_s:.2f} s ({tuning.episodes_per_s:.0f} episodes/s)")
     print(f"  starts (ω rules {format_vector(tuning.start_omegas)}): {report['index']} = "
           f"{format_vector(tuning.start_indices)}")
-    print(f"  kp = {format_vector(tuning.search.kp)}  kv = {format_vector(tuning.search.kv)}")
+    width = max(len(name) for name in report['joint_names'])
+    for name, gains in report['gains'].items():
+        print(f"  {name:<{width}}  kp = {gains['p']:.6g}  kv = {gains['d']:.6g}")
     for label, values in (('in-process', report['in_process']), ('from bag  ', report['from_bag'])):
         print(f"  {label}: I1 = {values['I1']:.9g}  I2 = {values['I2']:.9g}  I = {values['I']:.9g}")
     print(f"  largest relative difference {report['max_rel_difference']:.2e} "
           f"({'agree' if report['agree'] else 'DISAGREE'}); bag {report['bag']}")
+    for warning in report['warnings']:
+        print(f'  WARNING: {warning}')
+    if report['saturated_joints']:
+        print(f"  at their torque limit in the recorded episode: {', '.join(report['saturated_joints'])}")
+    print(f"  report {report['report']}")
     if report['gains_files']:
         print(f"  gains written to {', '.join(report['gains_files'])}")
     else:

@@ -21,10 +21,10 @@ from ddarm.control.laws import CONTROLLERS, LAWS, GainError, checked_gains, grav
 from ddarm.control.laws import warm_up as laws_warm_up
 from ddarm.episodes.indices import accumulate, error_weights, score_series, torque_weights
 from ddarm.episodes.result import Episodes
-from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, check_episode, plan_episode, plant_options
+from ddarm.episodes.spec import (EpisodeError, EpisodePlan, EpisodeSpec, check_episode, model_arm, model_chain,
+                                  plan_episode, plant_chain, plant_options)
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, disturbed_start
-from ddarm.physics.arm import load_arm
 from ddarm.physics.dynamics import COMPILED, load_chain, workspace
 from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
@@ -43,7 +43,7 @@ class BatchError(DdarmError, ValueError):
 
 
 @numba.njit(**COMPILED)
-def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, plant, record, series, outcome):
+def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episode, plant, record, series, outcome):
     """Members start … start + lanes - 1 through the loop of spec §5, all samples in step.
 
     Each member has its own gains, q̇(0), torque limit and plant mass scale; a member stops at a
@@ -58,6 +58,8 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
     # other threads would have their counts' cache lines bounce between the cores.
     chain = (chain[0].copy(), chain[1].copy(), chain[2].copy(), chain[3].copy(), chain[4].copy(), chain[5].copy(),
              chain[6].copy(), chain[7].copy(), chain[8].copy(), chain[9].copy())
+    model = (model[0].copy(), model[1].copy(), model[2].copy(), model[3].copy(), model[4].copy(), model[5].copy(),
+             model[6].copy(), model[7].copy(), model[8].copy(), model[9].copy())
     plant = (plant[0].copy(), plant[1].copy(), plant[2].copy(), plant[3], plant[4], plant[5], plant[6])
     n, samples = q0.shape[0], q_ref.shape[0]
     k_max = samples - 1
@@ -84,7 +86,7 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
         ring_q[k % (delay + 1)], ring_v[k % (delay + 1)] = q, v
         measured = measured_sample(k, delay)
         qm, vm = ring_q[measured % (delay + 1)], ring_v[measured % (delay + 1)]
-        law_command(controller, chain, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], gravity_ref[k],
+        law_command(controller, model, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], gravity_ref[k],
                     qm, vm, viscous_model, coulomb_model, law_work, commanded_acceleration, command, lanes)
         saturate(command, limit, applied, lanes)
         for b in range(lanes):
@@ -116,14 +118,14 @@ def _run_chunk(start, lanes, chain, controller, delay, q0, members, episode, pla
 
 
 @numba.njit(**COMPILED, nogil=True)
-def _run_chunks(first_chunk, chunk_stride, lanes, chain, controller, delay, q0, members, episode, plant, record,
-                series, outcome):
+def _run_chunks(first_chunk, chunk_stride, lanes, chain, model, controller, delay, q0, members, episode, plant,
+                record, series, outcome):
     """One thread's share of the batch: chunks first_chunk, first_chunk + chunk_stride, … of `lanes` members."""
     size = members[1].shape[0]
     for chunk in range(first_chunk, (size + lanes - 1) // lanes, chunk_stride):
         start = chunk * lanes
-        _run_chunk(start, min(lanes, size - start), chain, controller, delay, q0, members, episode, plant, record,
-                   series, outcome)
+        _run_chunk(start, min(lanes, size - start), chain, model, controller, delay, q0, members, episode, plant,
+                   record, series, outcome)
 
 
 def _batch_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +171,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     Raises BatchError (a ValueError) naming the problem, before anything is simulated.
     """
     plan = plan if plan is not None else plan_episode(template)
-    chain = load_chain(template.urdf)
+    chain, model = plant_chain(template), model_chain(template)
     dof = chain.dof
     if plan.q_ref.shape[1] != dof:
         raise BatchError(f'the plan has {plan.q_ref.shape[1]} joints, the URDF {dof}')
@@ -206,7 +208,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     out_q, out_v, out_command, out_torque = (np.full(series_shape, np.nan) for _ in range(4))
     zero = np.zeros(dof)
     law = LAWS[template.controller]
-    gravity_ref = (gravity_feedforward(load_arm(template.urdf), plan.q_ref) if law.gravity_feedforward
+    gravity_ref = (gravity_feedforward(model_arm(template), plan.q_ref) if law.gravity_feedforward
                    else np.zeros_like(plan.q_ref))
     # The controller's model of friction F̂ is the plant's (spec §5).
     compiled = options.compiled(dof)
@@ -219,7 +221,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), size)
     # Chunks small enough that every thread gets one, large enough to amortise a compiled call.
     lanes = min(LANES, -(-size // threads))
-    arguments = (lanes, chain.arrays(), law.code, int(template.delay), np.array(plan.q0, dtype=float), members,
+    arguments = (lanes, chain.arrays(), model.arrays(), law.code, int(template.delay), np.array(plan.q0, dtype=float), members,
                  episode, compiled, series, (out_q, out_v, out_command, out_torque), outcome)
     if threads == 1:
         _run_chunks(0, 1, *arguments)
@@ -238,7 +240,7 @@ def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
     """One episode in-process (spec §5), with its series: a batch of one."""
     plan = plan if plan is not None else check_episode(spec)
     try:
-        kp, kv = checked_gains(spec.kp, spec.kv, load_chain(spec.urdf).dof)
+        kp, kv = checked_gains(spec.kp, spec.kv, plan.q_ref.shape[1])
     except GainError as error:
         raise EpisodeError(str(error)) from error
     return simulate_batch(spec, [kp], [kv], series=True, plan=plan, threads=1)

@@ -147,6 +147,10 @@ class Episodes:
             changes[name] = float(value) if np.ndim(value) == 0 else tuple(float(x) for x in value)
         return dataclasses.replace(self.template, **changes)
 
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.plan.joint_names
+
     def torque_limit(self, member: int = 0) -> np.ndarray | None:
         if 'torque_limit' in self.varied:
             return np.array(self.varied['torque_limit'][member], dtype=float)
@@ -167,10 +171,20 @@ class Episodes:
         maxima = {}
         if self.torque is not None:
             errors, torque = self.scored('errors', member), self.scored('torque', member)
-            maxima = {'max_abs_error_deg': np.degrees(np.max(np.abs(errors), axis=0)).tolist() if scored else None,
+            largest = np.max(np.abs(errors), axis=0) if scored else None
+            # Degrees for angles only: a prismatic joint's error is a length (max_abs_error has it in m).
+            angle = ~np.array(self.plan.prismatic or (False,) * errors.shape[1], dtype=bool)
+            maxima = {'max_abs_error': largest.tolist() if scored else None,
+                      'max_abs_error_deg': [float(np.degrees(e)) if a else None for e, a in zip(largest, angle)]
+                      if scored else None,
                       'max_abs_torque': np.max(np.abs(torque), axis=0).tolist() if scored else None}
+            if limit is not None and scored:
+                # The command beyond its limit: the actuator applied the limit instead.
+                beyond = np.max(np.abs(self.scored('command', member)), axis=0) > limit
+                maxima['saturated_joints'] = [name for name, hit in zip(self.joint_names, beyond) if hit]
         return {
             **self.indices(member),
+            'joint_names': list(self.joint_names),
             'diverged': at >= 0,
             'diverged_at_sample': at if at >= 0 else None,
             'samples_scored': scored,

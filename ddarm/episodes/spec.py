@@ -2,20 +2,29 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
 from ddarm.control.gains import omega_rule_gains
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay, checked_gains
 from ddarm.errors import DdarmError
-from ddarm.motion.programmed import (ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
-                                     paper_torque_limit, paper_trajectory, sample_count, sample_times)
-from ddarm.physics.arm import ModelError, load_arm
+from ddarm.motion.files import MotionFile, load_motion
+from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
+                                     paper_motion_file, paper_torque_limit, sample_count, sample_times)
+from ddarm.physics.arm import Arm, ModelError, load_arm
+from ddarm.physics.dynamics import Chain, load_chain
 from ddarm.physics.plant import DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000
+
+
+# 'paper': Table 2's 2 x max |P^nom| per joint (spec §7); 'urdf': the plant URDF's <limit effort>.
+TORQUE_LIMITS = ('none', 'paper', 'urdf')
 
 
 class EpisodeError(DdarmError, ValueError):
@@ -33,26 +42,33 @@ class EpisodeSpec:
     controller: str
     kp: tuple[float, ...]
     kv: tuple[float, ...]
-    trajectory: int = 1
-    duration: float = 1.0
+    trajectory: int = 1  # the paper's motion, when no motion file is given
+    duration: float | None = None  # T; None: the motion's own (a bang-bang motion is stretched to T)
     period: float = 0.01
     delay: int = 1
     tau: float = 0.0
-    torque_limit: str | tuple[float, ...] = 'none'  # 'none', 'paper' (2 x max nominal) or N/m per joint
+    torque_limit: str | tuple[float, ...] = 'none'  # 'none', 'paper' (2 x max nominal), 'urdf' or N m per joint
     external_torque: tuple[float, ...] | None = None
     viscous_friction: tuple[float, ...] | None = None
     coulomb_friction: tuple[float, ...] | None = None
     mass_scale: tuple[float, ...] | None = None  # the plant's links against the controller's model
     substeps: int = DEFAULT_SUBSTEPS
-    urdf: str | None = None
+    urdf: str | None = None  # the plant's arm; None: the paper's (config/ddarm.urdf)
+    model_urdf: str | None = None  # the controller's model of it; None: the plant's URDF
+    motion: str | None = None  # a motion file (ddarm.motion.files); None: the paper's trajectory `trajectory`
 
     def __post_init__(self) -> None:
+        if self.duration is None:  # read here only: a spec read back from a bag needs no file
+            try:
+                object.__setattr__(self, 'duration', float(motion_file(self).motion.duration))
+            except MotionError as error:
+                raise EpisodeError(str(error)) from error
         for name in ('kp', 'kv', 'external_torque', 'viscous_friction', 'coulomb_friction', 'mass_scale'):
             object.__setattr__(self, name, _optional_tuple(getattr(self, name)))
         if not isinstance(self.torque_limit, str):
             object.__setattr__(self, 'torque_limit', _optional_tuple(self.torque_limit))
-        elif self.torque_limit not in ('none', 'paper'):
-            raise EpisodeError(f"torque_limit must be 'none', 'paper' or one number per joint, "
+        elif self.torque_limit not in TORQUE_LIMITS:
+            raise EpisodeError(f"torque_limit must be 'none', 'paper', 'urdf' or one number per joint, "
                                f'got {self.torque_limit!r}')
         if self.controller not in CONTROLLERS:
             raise EpisodeError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
@@ -80,43 +96,145 @@ class EpisodePlan:
     torque_limit: np.ndarray | None
     q0: np.ndarray
     v0: np.ndarray
-    motion: ProgrammedMotion | None = None  # None for a plan read back from a recording
+    motion: object | None = None  # ProgrammedMotion or WaypointMotion; None for a plan read back from a recording
+    warnings: tuple[str, ...] = ()  # the motion against the URDF's position and velocity limits
+    joint_names: tuple[str, ...] = ()  # the controlled joints, in the order of every per-joint array
+    prismatic: tuple[bool, ...] = ()  # per joint: positions in m (else rad)
 
     @property
     def k_max(self) -> int:
         return len(self.times) - 1
 
 
+@lru_cache(maxsize=64)
+def _read_motion(path: str, stamp: tuple[int, int]) -> MotionFile:
+    return load_motion(path)
+
+
+def motion_file(spec: EpisodeSpec) -> MotionFile:
+    """The episode's motion file: the user's (read again when it changes on disk), or the paper's trajectory."""
+    if spec.motion is None:
+        return paper_motion_file(spec.trajectory)
+    try:
+        status = os.stat(spec.motion)
+    except OSError as error:
+        raise MotionError(f'motion file {spec.motion}: {error.strerror}') from error
+    return _read_motion(spec.motion, (status.st_mtime_ns, status.st_size))
+
+
+def episode_motion(spec: EpisodeSpec):
+    """q^d of the episode: a bang-bang motion stretched to T, or the file's waypoints (held after their end)."""
+    motion = motion_file(spec).motion
+    if isinstance(motion, ProgrammedMotion):
+        # Fresh arrays: a caller may change its copy.
+        return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(spec.duration))
+    return motion
+
+
+def arm_joints(spec: EpisodeSpec) -> tuple[tuple[str, ...], tuple[tuple[str, float], ...]]:
+    """The controlled joints, in the motion's (= the URDF's) order, and the locked ones with their positions."""
+    motion = motion_file(spec)
+    return motion.joint_names, motion.locked
+
+
+def _reduced(load, urdf: str | None, spec: EpisodeSpec, *arguments):
+    joints, locked = arm_joints(spec)
+    try:
+        return load(urdf, *arguments, joints, locked)
+    except ModelError as error:
+        raise EpisodeError(f'{error} (motion {spec.motion or f"trajectory {spec.trajectory}"})') from error
+
+
+def model_arm(spec: EpisodeSpec) -> Arm:
+    """The controller's model: its URDF reduced to the motion's joints (P^nom, Ĝ, M̂ and the ω rules use it)."""
+    return _reduced(load_arm, spec.model_urdf or spec.urdf, spec, None)
+
+
+def plant_arm(spec: EpisodeSpec) -> Arm:
+    """The plant: its URDF reduced to the motion's joints, its links scaled by `mass_scale`."""
+    return _reduced(load_arm, spec.urdf, spec, spec.mass_scale)
+
+
+def plant_chain(spec: EpisodeSpec) -> Chain:
+    """The plant's model as the compiled loop reads it (unscaled: the loop scales each member's links)."""
+    return _reduced(load_chain, spec.urdf, spec)
+
+
+def model_chain(spec: EpisodeSpec) -> Chain:
+    """The controller's model as the compiled law reads it."""
+    return _reduced(load_chain, spec.model_urdf or spec.urdf, spec)
+
+
 def plan_episode(spec: EpisodeSpec) -> EpisodePlan:
-    """The paper's programmed motion for `spec`, sampled at j Δ for j = 0 … T/Δ."""
-    motion = paper_trajectory(spec.trajectory, spec.duration)
-    return plan_motion(spec, motion, sample_times(spec.duration, spec.period))
+    """The episode's motion (its file's, or the paper's), sampled at j Δ for j = 0 … T/Δ."""
+    return plan_motion(spec, episode_motion(spec), sample_times(spec.duration, spec.period))
 
 
-def plan_motion(spec: EpisodeSpec, motion: ProgrammedMotion, times: np.ndarray) -> EpisodePlan:
-    """The motion at the sample times, P^nom from the nominal model, limits and the τ-disturbed start."""
-    model = load_arm(spec.urdf)
+def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
+    """The motion at the sample times, P^nom from the controller's model, limits and the τ-disturbed start."""
+    model, plant = model_arm(spec), plant_arm(spec)
+    if model.joint_names != plant.joint_names:
+        raise EpisodeError(f'the model URDF {model.urdf_path} controls joints {model.joint_names}, the plant URDF '
+                           f'{plant.urdf_path} {plant.joint_names}')
     if motion.dof != model.dof:
         raise EpisodeError(f'the programmed motion has {motion.dof} joints, the URDF {model.dof}')
     q_ref, v_ref, a_ref = motion.sample(times)
+    warnings = motion_limit_warnings(plant, motion, times, q_ref, v_ref, spec)
     nominal = nominal_torque(model, motion, times)
     if spec.torque_limit == 'none':
         limit = None
     elif spec.torque_limit == 'paper':
         limit = paper_torque_limit(nominal)
+    elif spec.torque_limit == 'urdf':
+        limit = urdf_torque_limit(plant)
     else:
         limit = np.array(spec.torque_limit)
     q0, v0 = disturbed_start(motion, spec.tau)
-    return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0, motion)
+    return EpisodePlan(times, q_ref, v_ref, a_ref, nominal, limit, q0, v0, motion, tuple(warnings),
+                       tuple(model.joint_names), tuple(bool(x) for x in model.prismatic))
 
 
-def gains_from_omega(controller: str, omega: float, urdf: str | None = None,
-                     final_position: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The ω rule of section 2 for `controller`; PD + gravity takes m_ii of the model at q_f."""
+def urdf_torque_limit(arm: Arm) -> np.ndarray:
+    """Each controlled joint's <limit effort>; refused if a joint has none (or 0, which URDF allows)."""
+    for name, effort in zip(arm.joint_names, arm.effort_limit):
+        if not (np.isfinite(effort) and effort > 0):
+            raise EpisodeError(f'--urdf-limits: joint {name!r} of {arm.urdf_path} has no positive effort limit '
+                               f'(effort = {effort}): give --torque-limit instead')
+    return arm.effort_limit.copy()
+
+
+def motion_limit_warnings(arm: Arm, motion, times: np.ndarray, q_ref: np.ndarray, v_ref: np.ndarray,
+                          spec: EpisodeSpec) -> list[str]:
+    """Refuse a motion whose start, goal or waypoints lie outside the URDF's position limits; warn (naming the
+    joint) where q^d between them leaves the position limits or q̇^d exceeds the velocity limits."""
+    source = spec.motion or f'trajectory {spec.trajectory}'
+    knots = [('start', motion.q0), ('goal', motion.qf)]
+    knots += [(f'point {i}', positions) for i, positions in enumerate(getattr(motion, 'positions', ()))]
+    for label, positions in knots:
+        for name, value, lower, upper in zip(arm.joint_names, positions, arm.lower, arm.upper):
+            if not lower <= value <= upper:
+                raise EpisodeError(f'motion {source}: {label} of joint {name!r} is {value!r}, outside its URDF '
+                                   f'limits [{lower}, {upper}] ({arm.urdf_path})')
+    warnings = []
+    for i, name in enumerate(arm.joint_names):
+        outside = (q_ref[:, i] < arm.lower[i]) | (q_ref[:, i] > arm.upper[i])
+        if outside.any():
+            at = int(np.argmax(outside))
+            warnings.append(f'motion {source}: joint {name!r} leaves its position limits [{arm.lower[i]}, '
+                            f'{arm.upper[i]}] at t = {times[at]:.6g} s (q^d = {q_ref[at, i]:.6g})')
+        fastest = int(np.argmax(np.abs(v_ref[:, i])))
+        if abs(v_ref[fastest, i]) > arm.velocity_limit[i]:
+            warnings.append(f'motion {source}: joint {name!r} moves at {abs(v_ref[fastest, i]):.6g} at t = '
+                            f'{times[fastest]:.6g} s, beyond its URDF velocity limit {arm.velocity_limit[i]:.6g}')
+    return warnings
+
+
+def gains_from_omega(spec: EpisodeSpec, omega: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ω rule of section 2 for the spec's controller; PD + gravity takes m_ii of the model at q_f."""
     if not (np.isfinite(omega) and omega > 0):
         raise EpisodeError(f'omega must be finite and positive, got {omega!r}')
     try:
-        return omega_rule_gains(controller, load_arm(urdf), omega, final_position)
+        return omega_rule_gains(spec.controller, model_arm(spec), omega, episode_motion(spec).qf)
     except GainError as error:
         raise EpisodeError(str(error)) from error
 
@@ -131,7 +249,7 @@ def plant_options(spec: EpisodeSpec, plan: EpisodePlan, dof: int) -> PlantOption
 def check_episode(spec: EpisodeSpec) -> EpisodePlan:
     """Plan `spec` and check everything a run would refuse (gains, per-joint options), before any work starts."""
     plan = plan_episode(spec)
-    dof = load_arm(spec.urdf).dof
+    dof = plan.q_ref.shape[1]
     try:
         checked_gains(spec.kp, spec.kv, dof)
         plant_options(spec, plan, dof)

@@ -147,7 +147,7 @@ class Reproduction:
         case = self.settings.case
         template = _template(controller, case)
         omega = self.settings.omega_rules[controller]
-        kp, kv = gains_from_omega(controller, omega, final_position=paper_trajectory(case.trajectory, case.T).qf)
+        kp, kv = gains_from_omega(template, omega)
         self.progress(f'section 2: {controller} ω = {omega} rule')
         self.results.section2.omega_rules.append(OmegaRuleRow(
             controller=controller, omega=omega, kp=tuple(kp.tolist()), kv=tuple(kv.tolist()),

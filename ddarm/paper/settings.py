@@ -28,7 +28,7 @@ from ddarm.control.laws import CONTROLLERS, GainError, checked_delay
 from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 from ddarm.errors import DdarmError
 from ddarm.motion.files import DataLoader
-from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints, paper_trajectory
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints
 from ddarm.paper import typed
 from ddarm.tuning.procedures import steady_state_error_per_unit_gain
 
@@ -279,9 +279,8 @@ def _check_runs(settings: PaperSettings, cases: dict[str, Case], joints: dict[st
         # Section 2: the ω rule's episode, and the procedure's disturbed one.
         omega = settings.omega_rules[controller]
         _positive(fail, f'omega_rules.{controller}', omega)
-        final = paper_trajectory(case.trajectory, case.T).qf
         checked(f'omega_rules.{controller}', lambda: dataclasses.replace(
-            template, **dict(zip(('kp', 'kv'), gains_from_omega(controller, omega, final_position=final)))))
+            template, **dict(zip(('kp', 'kv'), gains_from_omega(template, omega)))))
         procedure = settings.omega_procedure[controller]
         _positive(fail, f'omega_procedure.{controller}.max_error_deg', procedure.max_error_deg)
         disturbed = checked(f'omega_procedure.{controller}.disturbance',

@@ -494,7 +494,8 @@ def bag_result(bag: BagEpisode) -> Episodes:
     if limit is not None:
         limit = per_joint(f'{path}: {EPISODE_TOPIC} torque_limit', limit, len(bag.joints), BagError, positive=True)
     plan = EpisodePlan(bag.reference_times, bag.q_ref, bag.v_ref, bag.a_ref, bag.nominal, limit,
-                       *(bag.states[0][:2] if 0 in bag.states else (None, None)))
+                       *(bag.states[0][:2] if 0 in bag.states else (None, None)), joint_names=tuple(bag.joints),
+                       prismatic=tuple(bool(x) for x in bag.episode.get('prismatic', [False] * len(bag.joints))))
     try:
         return Episodes.from_recorded(spec, plan, bag.states, bag.commands)
     except (RecordingError, IndicesError) as error:

@@ -11,9 +11,8 @@ import numpy as np
 from ddarm.control.gains import (computed_torque_error_external, computed_torque_error_mass, pd_gravity_error,
                                  smallest_omega)
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, gains_from_omega, plan_episode
-from ddarm.motion.programmed import paper_trajectory
-from ddarm.physics.arm import load_arm
+from ddarm.episodes.spec import (EpisodeError, EpisodeSpec, episode_motion, gains_from_omega, model_arm, plan_episode,
+                                  plant_arm)
 
 
 # The raising step simulates one episode per ω: far more than any useful procedure, refused before any work.
@@ -47,9 +46,8 @@ def steady_state_error_per_unit_gain(spec: EpisodeSpec) -> tuple[np.ndarray, np.
 
     The disturbance is the spec's constant P^z and its plant/model mass mismatch; both may act.
     """
-    model = load_arm(spec.urdf)
-    plant = load_arm(spec.urdf, spec.mass_scale)
-    q_final = paper_trajectory(spec.trajectory, spec.duration).qf
+    model, plant = model_arm(spec), plant_arm(spec)
+    q_final = episode_motion(spec).qf
     external = np.zeros(model.dof) if spec.external_torque is None else np.array(spec.external_torque)
     unit = np.ones(model.dof)
     if spec.controller == 'computed_torque':
@@ -81,7 +79,6 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     if not np.any(error_unit):
         raise EpisodeError('no external torque and no mass mismatch: the steady-state errors are zero at every ω, '
                            'so the permitted error bounds nothing (give a disturbance and/or a mass error)')
-    final = paper_trajectory(spec.trajectory, spec.duration).qf
     unlimited = dataclasses.replace(spec, torque_limit='none')
     steps, chosen, chosen_gains = [], None, (None, None)
     # A disturbance-free arm needs no minimum: the raising then starts from one step.
@@ -93,7 +90,7 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     limit = plan_episode(dataclasses.replace(spec, torque_limit='paper' if spec.torque_limit == 'none'
                                              else spec.torque_limit)).torque_limit
     while omega <= omega_max + 1e-12:
-        kp, kv = gains_from_omega(spec.controller, omega, spec.urdf, final)
+        kp, kv = gains_from_omega(spec, omega)
         result = run_episode(dataclasses.replace(unlimited, kp=kp, kv=kv))
         largest = np.max(np.abs(result.scored('torque')), axis=0)
         nominal = np.max(np.abs(result.plan.nominal), axis=0)

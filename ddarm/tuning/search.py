@@ -13,7 +13,6 @@ import cma
 import numpy as np
 
 from ddarm.errors import DdarmError
-from ddarm.motion.programmed import paper_trajectory
 from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeSpec, gains_from_omega, plan_episode
@@ -116,8 +115,7 @@ class _Objective:
 
 def omega_starts(template: EpisodeSpec, omegas) -> tuple[np.ndarray, np.ndarray]:
     """Start gains from section 2's ω rules for the template's controller at each ω: (kp, kv), each (S, n)."""
-    final = paper_trajectory(template.trajectory, template.duration).qf
-    pairs = [gains_from_omega(template.controller, float(omega), template.urdf, final) for omega in omegas]
+    pairs = [gains_from_omega(template, float(omega)) for omega in omegas]
     return np.array([kp for kp, _ in pairs]), np.array([kv for _, kv in pairs])
 
 

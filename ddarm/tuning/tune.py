@@ -22,6 +22,7 @@ class Tuning:
     start_indices: list  # the index of each ω-rule start
     wall_time_s: float
     best: dict  # the indices of the best gains, re-run as one episode
+    warnings: tuple[str, ...] = ()  # the motion against the URDF's limits
 
     @property
     def episodes_per_s(self) -> float:
@@ -38,8 +39,9 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
     result = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget,
                           method=method, seed=seed)
     wall = time.perf_counter() - started
-    best = run_episode(with_gains(template, result.kp, result.kv)).indices()
-    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, best)
+    episode = run_episode(with_gains(template, result.kp, result.kv))
+    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(),
+                  episode.plan.warnings)
 
 
 def with_gains(template: EpisodeSpec, kp, kv) -> EpisodeSpec:
