@@ -17,7 +17,7 @@ from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau,
                                      paper_motion_file, paper_torque_limit, sample_count, sample_times)
 from ddarm.physics.arm import Arm, ModelError, load_arm
 from ddarm.physics.dynamics import Chain, load_chain
-from ddarm.physics.plant import DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
+from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000
@@ -176,11 +176,27 @@ def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
     if model.joint_names != plant.joint_names:
         raise EpisodeError(f'the model URDF {model.urdf_path} controls joints {model.joint_names}, the plant URDF '
                            f'{plant.urdf_path} {plant.joint_names}')
+    for name, model_kind, plant_kind in zip(model.joint_names, model.prismatic, plant.prismatic):
+        if model_kind != plant_kind:
+            kinds = {True: 'prismatic', False: 'revolute'}
+            raise EpisodeError(f'joint {name!r} is {kinds[bool(plant_kind)]} in the plant URDF {plant.urdf_path} and '
+                               f'{kinds[bool(model_kind)]} in the model URDF {model.urdf_path}')
     if motion.dof != model.dof:
         raise EpisodeError(f'the programmed motion has {motion.dof} joints, the URDF {model.dof}')
     q_ref, v_ref, a_ref = motion.sample(times)
-    warnings = motion_limit_warnings(plant, motion, times, q_ref, v_ref, spec)
+    warnings = motion_limit_warnings(plant, motion, spec)
+    try:
+        for arm in (plant, model):
+            arm.check_inertia(motion.q0, 'the start of the motion')
+    except ModelError as error:
+        raise EpisodeError(str(error)) from error
     nominal = nominal_torque(model, motion, times)
+    source = spec.motion or f'trajectory {spec.trajectory}'
+    for name, largest in zip(model.joint_names, np.max(np.abs(nominal), axis=0)):
+        if not largest > 0:
+            raise EpisodeError(f'motion {source}: joint {name!r} neither moves nor carries gravity along the motion '
+                               f'(its nominal torque is 0 at every sample), so (3.2) has no torque scale R_i for it '
+                               f'(spec §8): lock it (under locked) or move it')
     if spec.torque_limit == 'none':
         limit = None
     elif spec.torque_limit == 'paper':
@@ -203,18 +219,32 @@ def urdf_torque_limit(arm: Arm) -> np.ndarray:
     return arm.effort_limit.copy()
 
 
-def motion_limit_warnings(arm: Arm, motion, times: np.ndarray, q_ref: np.ndarray, v_ref: np.ndarray,
-                          spec: EpisodeSpec) -> list[str]:
-    """Refuse a motion whose start, goal or waypoints lie outside the URDF's position limits; warn (naming the
-    joint) where q^d between them leaves the position limits or q̇^d exceeds the velocity limits."""
+# q^d between the samples: checked this densely over the motion, and at T/2 and T exactly (the bang-bang's peak
+# velocity, a waypoint spline's overshoot fall between the samples the episode takes).
+LIMIT_CHECK_POINTS = 4001
+
+
+def motion_limit_warnings(arm: Arm, motion, spec: EpisodeSpec) -> list[str]:
+    """Refuse a motion whose start, goal or waypoints lie outside the URDF's position limits, or whose q^d leaves
+    the plant's divergence bound (spec §12); warn (naming the joint) where q^d between them leaves the position
+    limits or q̇^d exceeds the velocity limits."""
     source = spec.motion or f'trajectory {spec.trajectory}'
     knots = [('start', motion.q0), ('goal', motion.qf)]
     knots += [(f'point {i}', positions) for i, positions in enumerate(getattr(motion, 'positions', ()))]
     for label, positions in knots:
         for name, value, lower, upper in zip(arm.joint_names, positions, arm.lower, arm.upper):
             if not lower <= value <= upper:
-                raise EpisodeError(f'motion {source}: {label} of joint {name!r} is {value!r}, outside its URDF '
-                                   f'limits [{lower}, {upper}] ({arm.urdf_path})')
+                raise EpisodeError(f'motion {source}: {label} of joint {name!r} is {float(value)!r}, outside its '
+                                   f'URDF limits [{float(lower)}, {float(upper)}] ({arm.urdf_path})')
+    times = np.linspace(0.0, motion.duration, LIMIT_CHECK_POINTS)
+    q_ref, v_ref, _ = motion.sample(times)
+    for i, name in enumerate(arm.joint_names):
+        beyond = np.abs(q_ref[:, i]) > DEFAULT_MAX_POSITION
+        if beyond.any():
+            at = int(np.argmax(beyond))
+            raise EpisodeError(f'motion {source}: joint {name!r} reaches q^d = {float(q_ref[at, i])!r} at t = '
+                               f'{times[at]:.6g} s, beyond the plant\'s divergence bound ±{DEFAULT_MAX_POSITION:g} '
+                               f'(spec §12): an episode there would end as diverged')
     warnings = []
     for i, name in enumerate(arm.joint_names):
         outside = (q_ref[:, i] < arm.lower[i]) | (q_ref[:, i] > arm.upper[i])

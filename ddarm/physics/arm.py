@@ -11,6 +11,7 @@ Pinocchio represents by (cos θ, sin θ), is given to Pinocchio through `configu
 from __future__ import annotations
 
 import math
+import os
 import sys
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
@@ -28,6 +29,11 @@ MOVABLE = ('revolute', 'continuous', 'prismatic')
 PINOCCHIO_JOINTS = ('JointModelRX', 'JointModelRY', 'JointModelRZ', 'JointModelRevoluteUnaligned',
                     'JointModelRUBX', 'JointModelRUBY', 'JointModelRUBZ', 'JointModelRevoluteUnboundedUnaligned',
                     'JointModelPX', 'JointModelPY', 'JointModelPZ', 'JointModelPrismaticUnaligned')
+
+
+def is_prismatic(joint_model: str) -> bool:
+    """Whether a Pinocchio joint model (its shortname) is prismatic: its position a length, its effort a force."""
+    return joint_model.startswith('JointModelP')
 
 
 class ModelError(DdarmError, ValueError):
@@ -158,7 +164,7 @@ def _locked_positions(path: Path, joints: dict[str, UrdfJoint], movable: list[st
     return positions
 
 
-def _read_model(path: Path) -> pin.Model:
+def _check_readable(path: Path) -> None:
     if path.is_dir():
         raise ModelError(f'URDF {path} is a directory, not a URDF file')
     if not path.exists():
@@ -169,6 +175,9 @@ def _read_model(path: Path) -> pin.Model:
             pass
     except OSError as error:
         raise ModelError(f'URDF {path} cannot be read: {error.strerror}') from error
+
+
+def _read_model(path: Path) -> pin.Model:
     try:
         return pin.buildModelFromUrdf(str(path))
     except (RuntimeError, ValueError) as error:
@@ -205,8 +214,9 @@ class Arm:
         spatial inertia, which is how the plant is made to differ from the model.
         """
         path = Path(urdf_path) if urdf_path is not None else default_urdf_path()
+        _check_readable(path)
+        described = urdf_joints(path)  # first: Pinocchio's parser prints its own lines for a joint type it refuses
         full = _read_model(path)
-        described = urdf_joints(path)
         movable = list(full.names)[1:]
         controlled = tuple(movable if joints is None else joints)
         if not controlled:
@@ -256,16 +266,21 @@ class Arm:
                   effort_limit=np.array([joint.effort for joint in limits]),
                   unbounded=np.array([model.joints[i].nq == 2 for i in range(1, model.njoints)]),
                   locked=tuple(positions.items()))
-        arm._check_moves_mass()
+        arm.check_inertia(np.zeros(arm.dof), 'q = 0')
         return arm
 
-    def _check_moves_mass(self) -> None:
-        # A joint whose links carry no inertia makes M(q) singular: the plant could not be integrated.
-        diagonal = np.diag(self.mass_matrix(np.zeros(self.dof)))
-        for name, value in zip(self.joint_names, diagonal):
+    def check_inertia(self, q: np.ndarray, where: str) -> None:
+        """Refuse an M(q) that is not positive definite: the plant could not be integrated, nor M̂ inverted."""
+        mass = self.mass_matrix(q)
+        for name, value in zip(self.joint_names, np.diag(mass)):
             if not value > 0:
-                raise ModelError(f'URDF {self.urdf_path}: joint {name!r} moves no mass or inertia (M_ii = {value}): '
-                                 f'lock it, or give its link an <inertial>')
+                raise ModelError(f'URDF {self.urdf_path}: joint {name!r} moves no mass or inertia (M_ii = '
+                                 f'{float(value)!r}): lock it, or give its link an <inertial>')
+        values, vectors = np.linalg.eigh(mass)
+        if not values[0] > 1e-12 * values[-1]:
+            involved = [name for name, part in zip(self.joint_names, vectors[:, 0]) if abs(part) > 0.1]
+            raise ModelError(f'URDF {self.urdf_path}: M(q) is singular at {where} (joints {involved} move the same '
+                             f'inertia, e.g. two coaxial joints with no mass between them): lock one of them')
 
     @property
     def dof(self) -> int:
@@ -278,8 +293,7 @@ class Arm:
     @property
     def prismatic(self) -> np.ndarray:
         """Which controlled joints are prismatic (positions in m, efforts in N); the others are angles."""
-        return np.array([self.model.joints[i].shortname().startswith('JointModelP')
-                         for i in range(1, self.model.njoints)])
+        return np.array([is_prismatic(self.model.joints[i].shortname()) for i in range(1, self.model.njoints)])
 
     def configuration(self, q: np.ndarray) -> np.ndarray:
         """Pinocchio's configuration of joint positions q: (cos θ, sin θ) for each continuous joint."""
@@ -326,8 +340,23 @@ class Arm:
         return self.data.oMf[self.model.getFrameId(frame)].translation.copy()
 
 
-@lru_cache(maxsize=16)
+def urdf_stamp(urdf: str | None) -> tuple:
+    """What a cached model of `urdf` is valid for: the file's modification time and size (a file edited between
+    two commands of one process is read again)."""
+    try:
+        status = os.stat(urdf if urdf is not None else default_urdf_path())
+    except OSError:
+        return ()  # from_urdf refuses it, naming why
+    return status.st_mtime_ns, status.st_size
+
+
 def load_arm(urdf: str | None, mass_scale: tuple[float, ...] | None = None, joints: tuple[str, ...] | None = None,
              locked: tuple[tuple[str, float], ...] = ()) -> Arm:
-    """The arm from a URDF, loaded once per process (Arm holds scratch space: one thread only)."""
+    """The arm from a URDF, loaded once per process and version of the file (Arm holds scratch space: one thread
+    only)."""
+    return _load_arm(urdf, urdf_stamp(urdf), mass_scale, joints, locked)
+
+
+@lru_cache(maxsize=16)
+def _load_arm(urdf, stamp, mass_scale, joints, locked) -> Arm:
     return Arm.from_urdf(urdf, mass_scale, joints, locked)

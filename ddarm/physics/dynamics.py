@@ -18,25 +18,9 @@ import numba
 import numpy as np
 import pinocchio as pin
 
-from ddarm.physics.arm import ModelError, load_arm
+from ddarm.physics.arm import PINOCCHIO_JOINTS, ModelError, is_prismatic, load_arm, urdf_stamp
 
 REVOLUTE, PRISMATIC = 0, 1
-_JOINT_KINDS = {
-    'JointModelRX': (REVOLUTE, (1.0, 0.0, 0.0)),
-    'JointModelRY': (REVOLUTE, (0.0, 1.0, 0.0)),
-    'JointModelRZ': (REVOLUTE, (0.0, 0.0, 1.0)),
-    'JointModelRevoluteUnaligned': (REVOLUTE, None),
-    # Continuous joints: Pinocchio's (cos θ, sin θ) configuration, here the angle θ itself.
-    'JointModelRUBX': (REVOLUTE, (1.0, 0.0, 0.0)),
-    'JointModelRUBY': (REVOLUTE, (0.0, 1.0, 0.0)),
-    'JointModelRUBZ': (REVOLUTE, (0.0, 0.0, 1.0)),
-    'JointModelRevoluteUnboundedUnaligned': (REVOLUTE, None),
-    'JointModelPX': (PRISMATIC, (1.0, 0.0, 0.0)),
-    'JointModelPY': (PRISMATIC, (0.0, 1.0, 0.0)),
-    'JointModelPZ': (PRISMATIC, (0.0, 0.0, 1.0)),
-    'JointModelPrismaticUnaligned': (PRISMATIC, None),
-}
-
 @dataclass(frozen=True)
 class Chain:
     """A Pinocchio model as plain arrays: per joint its parent, kind, axis, placement and link inertia.
@@ -71,16 +55,22 @@ def chain_from_model(model: pin.Model) -> Chain:
     """The arrays the compiled dynamics read, from a model of 1-DOF revolute (bounded or continuous) or prismatic
     joints; positions are angles and lengths."""
     parent, kind, axis, rotation, translation = [], [], [], [], []
+    # Each joint's axis from its motion subspace S (linear part for prismatic, angular for revolute joints): the
+    # Python bindings expose no axis for every joint model (RevoluteUnboundedUnaligned has none).
+    data = model.createData()
+    pin.forwardKinematics(model, data, pin.neutral(model))
     for joint_id in range(1, model.njoints):
         joint = model.joints[joint_id]
         name = joint.shortname()
-        if name not in _JOINT_KINDS or joint.nv != 1 or joint.idx_v != joint_id - 1:
+        if name not in PINOCCHIO_JOINTS or joint.nv != 1 or joint.idx_v != joint_id - 1:
             raise ModelError(f'joint {model.names[joint_id]!r} is a {name}: the batch engine supports '
                              f'revolute, continuous and prismatic joints only')
-        joint_kind, joint_axis = _JOINT_KINDS[name]
+        # Continuous joints (RUB*, Pinocchio's (cos θ, sin θ)) are revolute: their position is the angle θ.
+        joint_kind = PRISMATIC if is_prismatic(name) else REVOLUTE
+        subspace = np.array(data.joints[joint_id].S).ravel()
         parent.append(model.parents[joint_id] - 1)
         kind.append(joint_kind)
-        axis.append(joint.extract().axis if joint_axis is None else joint_axis)
+        axis.append(subspace[:3] if joint_kind == PRISMATIC else subspace[3:])
         rotation.append(model.jointPlacements[joint_id].rotation)
         translation.append(model.jointPlacements[joint_id].translation)
     inertias = [model.inertias[joint_id] for joint_id in range(1, model.njoints)]
@@ -94,10 +84,15 @@ def chain_from_model(model: pin.Model) -> Chain:
         armature=np.array(model.armature, dtype=float), gravity=np.array(model.gravity.linear, dtype=float))
 
 
-@lru_cache(maxsize=16)
 def load_chain(urdf: str | None, joints: tuple[str, ...] | None = None,
                locked: tuple[tuple[str, float], ...] = ()) -> Chain:
-    """The chain of the URDF's model reduced to `joints` (the others `locked`), built once per process."""
+    """The chain of the URDF's model reduced to `joints` (the others `locked`), built once per process and version
+    of the file."""
+    return _load_chain(urdf, urdf_stamp(urdf), joints, locked)
+
+
+@lru_cache(maxsize=16)
+def _load_chain(urdf, stamp, joints, locked) -> Chain:
     return chain_from_model(load_arm(urdf, None, joints, locked).model)
 
 
