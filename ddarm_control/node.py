@@ -1,49 +1,100 @@
-"""The controller nodes: PD + gravity or computed torque on /joint_states, publishing the effort for each sample."""
+"""The controller nodes: PD + gravity or computed torque on /joint_states, publishing the effort for each sample.
+
+Two ways to sample (`sampling`): `state`, one command per stamped state of ddarm's plant in lockstep
+(sample n = stamp / Δ, the reference from /reference); `timer`, a timer at 1/Δ on the node's clock
+against a plant or robot the node did not start (the latest /joint_states, the reference from the
+`motion` file). The commands go out as a stamped JointState (ddarm's plant) or as the bare
+Float64MultiArray a ros2_control forward_command_controller on effort interfaces takes.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections import deque
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ddarm.control.gains import gains_from_parameters
 from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
+from ddarm.errors import DdarmError
+from ddarm.motion.files import MotionFile, load_motion
+from ddarm.motion.programmed import MotionError, nominal_torque
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import NODE_PERIOD_RANGE
-from ddarm.ros.interface import (EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                     SAMPLE_QOS, Reference, descriptor, joint_state_msg, plain_parameters,
-                                     proposed_values, read_joint_state, read_reference,
-                                     refuse_undeclared_parameters, undeclared_overrides)
+from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EFFORT_COMMAND_TOPIC, GAIN_KEYS,
+                                     JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC, ROBOT_COMMAND_QOS,
+                                     ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotState, descriptor,
+                                     effort_array_msg, gain_parameter, given_gains, joint_state_msg, plain_parameters,
+                                     proposed_values, read_joint_state, read_reference, read_robot_state,
+                                     refuse_undeclared_parameters, undeclared_overrides,
+                                     unknown_parameters_reason)
 from ddarm.ros.executable import run_node
-from ddarm.samples import MessageError
+from ddarm.samples import MAX_REFERENCE_POINTS, MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
 MAX_WAITING_STATES = 10_000
+SAMPLINGS = ('state', 'timer')
+# The range of a gains.<joint>.p or .d parameter; 0 means unset (kp/kv or omega give the gains).
+MAX_GAIN = 1e9
+# Timer mode logs a recurring fault (a stale state, a refused one) at most this often, s; each is counted.
+LOG_EVERY = 1.0
+# Timer mode says what it waits for (a /clock, a state) this often, wall s, until the motion starts.
+WATCH_EVERY = 5.0
 
 
-def effective_gains(law: str, values: dict, model: Arm, reference: Reference | None):
-    """K_p, K_v from the parameters (`gains_from_parameters`); None while the PD + gravity rule waits for q_f."""
-    return gains_from_parameters(law, values['omega'], values['kp'], values['kv'], model,
-                                 None if reference is None else reference.q[-1])
+class ControllerError(DdarmError, ValueError):
+    """A controller node configuration refused at start (sampling, command interface, motion and joints)."""
+
+
+def effective_gains(law: str, values: dict, model: Arm, reference: Reference | None, given: tuple):
+    """K_p, K_v from the parameters (`gains_from_parameters`); None while the PD + gravity rule waits for q_f.
+
+    `given` is (kp, kv) as the parameters give them (`given_gains`): the ω rule overrides them when omega > 0.
+    """
+    return gains_from_parameters(law, values['omega'], *given, model, None if reference is None else reference.q[-1])
+
+
+def checked_choice(name: str, value: str, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ControllerError(f'{name} must be one of {list(choices)}, got {value!r}')
+    return value
+
+
+def motion_reference(model: Arm, file: MotionFile, period: float) -> Reference:
+    """The motion file's q^d, q̇^d, q̈^d (and P^nom) at t_j = j Δ from j = 0 to the first sample at or after T;
+    `Reference.point` holds the goal after it. T need not be a whole number of periods (a waypoint's time)."""
+    last = math.ceil(file.motion.duration / period - 1e-9)
+    if last + 1 > MAX_REFERENCE_POINTS:
+        raise MotionError(f'the motion of {last + 1} samples of {period} s is more than the '
+                          f'{MAX_REFERENCE_POINTS} allowed')
+    times = np.arange(last + 1) * period  # each a product, never a running sum
+    q, v, a = file.motion.sample(times)
+    return Reference(times, q, v, a, nominal_torque(model, file.motion, times))
 
 
 class ControllerNode(Node):
     """One law behind ROS: the command for sample n from the state of sample n - d and the reference at t_n.
 
-    Each command is a JointState stamped with the sample it applies to, carrying names and effort.
-    A state at t = 0 starts a new episode (the delay buffer is cleared), as does ~/reset.
+    sampling `state`: each command is a JointState stamped with the sample it applies to, carrying
+    names and effort; a state at t = 0 starts a new episode (the delay buffer is cleared), as does
+    ~/reset. sampling `timer`: sample 0 is the first tick with a state, the reference is the
+    `motion` file's, and a tick whose latest state is older than one period sends nothing.
     """
 
     def __init__(self, law: str, **kwargs) -> None:
@@ -53,66 +104,162 @@ class ControllerNode(Node):
         self.law_name = law
         self.incompatible_qos_events = 0
         self.refused_messages = 0
+        # Timer mode's faults, in ~/status and on /diagnostics.
+        self.counters = {'refused_states': 0, 'out_of_order_states': 0, 'stale_ticks': 0, 'future_ticks': 0,
+                         'missed_ticks': 0, 'clock_faults': 0, 'non_finite_commands': 0}
         self._declare_parameters()
         values = proposed_values(self, ())
-        self.model = Arm.from_urdf(values['urdf'] or None)
+        self.sampling = checked_choice('sampling', values['sampling'], SAMPLINGS)
+        self.command_type = checked_choice('command_type', values['command_type'], COMMAND_TYPES)
+        self.motion_file = load_motion(values['motion']) if values['motion'] else None
+        if self.sampling == 'timer' and self.motion_file is None:
+            raise ControllerError("sampling 'timer' needs a motion file (motion): the reference comes from it")
+        self.model, self.joints = self._model(values)
         self.chain = chain_from_model(self.model.model)
-        self.joints = list(values['joints']) if values['joints'] else self.model.joint_names
-        if self.joints != self.model.joint_names:
-            raise ModelError(f'joints {self.joints} must be the URDF joints in URDF order {self.model.joint_names}')
+        self._declare_gains()
         unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
         if unknown:
-            raise GainError(f'unknown parameters {unknown} (not {law} parameters: a typo?)')
+            raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, self.joints)}')
+        values = proposed_values(self, ())
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
         self.reference: Reference | None = None
         self.reference_gravity: np.ndarray | None = None  # Ĝ(q^d) at each reference sample, for PD + gravity
-        gains = effective_gains(law, values, self.model, None) or (np.ones(self.model.dof),) * 2
+        gains = effective_gains(law, values, self.model, None, given_gains(values, self.joints))
         self.controller = SampledController(
-            make_law(law, self.chain, *gains, *self._friction(values)), checked_delay(values['compute_delay_steps']))
+            make_law(law, self.chain, *(gains or (np.ones(self.model.dof),) * 2), *self._friction(values)),
+            checked_delay(values['compute_delay_steps']))
         warm_up(self.chain)
-        self.gains_ready = values['omega'] == 0 or law == 'computed_torque'
-        refuse_undeclared_parameters(self, law)
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
-
-        self.command_publisher = self.create_publisher(
-            JointState, EFFORT_COMMAND_TOPIC, SAMPLE_QOS,
-            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
-        self.state_subscription = self.create_subscription(
-            JointState, JOINT_STATES_TOPIC, self._on_state, SAMPLE_QOS,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
-        self.reference_subscription = self.create_subscription(
-            JointTrajectory, REFERENCE_TOPIC, self._on_reference, REFERENCE_QOS,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
-        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
-        self.status_service = self.create_service(Trigger, '~/status', self._on_status)
+        self.gains_ready = gains is not None
+        if self.sampling == 'timer':
+            self._set_reference(motion_reference(self.model, self.motion_file, self.period))
         # Counts every change of what the commands are computed from (parameters, reference, reset), so a
         # driver can tell whether anyone touched the controller while an episode ran.
         self.configuration = 0
         self.last_sample: int | None = None
         self.waiting: deque = deque(maxlen=MAX_WAITING_STATES)
+        # Timer mode: the latest state, the node's time of sample 0 (ns) and the last tick's sample.
+        self.latest_state: RobotState | None = None
+        self.start_time: int | None = None
+        self.tick_sample: int | None = None
+        self.ticks = 0
+        refuse_undeclared_parameters(self, law, self.joints, self._one_gain_form)
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        timer = self.sampling == 'timer'
+        try:
+            self.command_publisher = self.create_publisher(
+                JointState if self.command_type == 'joint_state' else Float64MultiArray, values['command_topic'],
+                ROBOT_COMMAND_QOS if timer else SAMPLE_QOS, event_callbacks=PublisherEventCallbacks(
+                    incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
+        except InvalidTopicNameException as error:
+            reason = str(error).splitlines()[0]  # rcl's next lines point at the character
+            raise ControllerError(f'command_topic {values["command_topic"]!r} is no topic name: {reason}') from None
+        self.state_subscription = self.create_subscription(
+            JointState, JOINT_STATES_TOPIC, self._on_robot_state if timer else self._on_state,
+            ROBOT_STATE_QOS if timer else SAMPLE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
+        self.reference_subscription = None if timer else self.create_subscription(
+            JointTrajectory, REFERENCE_TOPIC, self._on_reference, REFERENCE_QOS,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
+        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS) \
+            if timer else None
+        # On the node's clock: the wall clock, or /clock under use_sim_time.
+        self.timer = self.create_timer(self.period, self._on_tick, clock=self.get_clock()) if timer else None
+        # Says, on the wall clock, why a timer-mode node has not started the motion (no /clock, no state).
+        self.watchdog = self.create_timer(WATCH_EVERY, self._watch, clock=Clock(clock_type=ClockType.STEADY_TIME)) \
+            if timer else None
+        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
+        self.status_service = self.create_service(Trigger, '~/status', self._on_status)
         self.get_logger().info(self._describe())
 
     def _declare_parameters(self) -> None:
         double_array = Parameter.Type.DOUBLE_ARRAY
         declared = [
             ('urdf', '', descriptor('URDF of the controller model ("" = the ddarm arm)', read_only=True)),
+            ('motion', '', descriptor('motion file: its joint_names are the controlled joints (the others locked '
+                                      'at its locked positions), and in timer mode its motion is the reference '
+                                      '("" = every joint of the URDF, the reference from /reference)',
+                                      read_only=True)),
             ('joints', Parameter.Type.STRING_ARRAY, descriptor('joint names in URDF order, the order of kp and kv '
-                                                               '(unset: from the URDF)', read_only=True)),
-            ('kp', double_array, descriptor('K_p diagonal, one positive value per joint')),
-            ('kv', double_array, descriptor('K_v diagonal, one positive value per joint')),
-            ('omega', 0.0, descriptor('ω rule of section 2 when > 0 (overrides kp, kv)', floating=(0.0, 1e4))),
+                                                               '(unset: from the motion file, else the URDF)',
+                                                               read_only=True)),
+            ('kp', double_array, descriptor('K_p diagonal, one positive value per joint (or gains.<joint>.p)')),
+            ('kv', double_array, descriptor('K_v diagonal, one positive value per joint (or gains.<joint>.d)')),
+            ('omega', 0.0, descriptor('ω rule of section 2 when > 0 (overrides kp, kv and gains)',
+                                      floating=(0.0, 1e4))),
             ('compute_delay_steps', 1, descriptor('compute delay d in samples', integer=(0, MAX_DELAY))),
-            ('period', 0.01, descriptor('sampling period Δ in s (to read sample indices from stamps)',
+            ('period', 0.01, descriptor('sampling period Δ in s (state: to read sample indices from stamps; '
+                                        'timer: the timer period, fixed while the node runs)',
                                         floating=NODE_PERIOD_RANGE)),
             ('max_sample_gap', 100, descriptor('states more than this many samples ahead of the expected one '
-                                               'are refused', integer=(1, 1_000_000))),
+                                               'are refused (sampling state)', integer=(1, 1_000_000))),
             ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque), N m s/rad")),
             ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque), N m")),
+            ('sampling', 'state', descriptor('state: one command per stamped state (lockstep with ddarm\'s plant); '
+                                             'timer: a timer at 1/period samples the latest /joint_states',
+                                             read_only=True)),
+            ('command_type', 'joint_state', descriptor('joint_state: a stamped JointState with names; '
+                                                       'float64_multi_array: the efforts in joint order, as a '
+                                                       'forward_command_controller takes them', read_only=True)),
+            ('command_topic', EFFORT_COMMAND_TOPIC, descriptor('the topic of the effort commands (a robot\'s: '
+                                                               '/<controller>/commands)', read_only=True)),
         ]
         for name, default, described in declared:
             self.declare_parameter(name, default, described)
+
+    def _declare_gains(self) -> None:
+        """gains.<joint>.p and gains.<joint>.d for each controlled joint: ros2_controllers' gains by joint name."""
+        for joint in self.joints:
+            for key, gain in zip(GAIN_KEYS, ('K_p', 'K_v')):
+                self.declare_parameter(gain_parameter(joint, key), 0.0, descriptor(
+                    f'{gain} of {joint}, > 0 (0 = unset: kp/kv or omega give the gains)', floating=(0.0, MAX_GAIN)))
+
+    def _model(self, values: dict) -> tuple[Arm, list[str]]:
+        """The controller's model and its joints: the motion file's (the others locked), else the URDF's."""
+        urdf = values['urdf'] or None
+        given = list(values['joints']) if values['joints'] else None
+        if self.motion_file is None:
+            model = Arm.from_urdf(urdf)
+            joints = given or model.joint_names
+            if joints != model.joint_names:
+                raise ModelError(f'joints {joints} must be the URDF joints in URDF order {model.joint_names}')
+            return model, joints
+        joints = list(self.motion_file.joint_names)
+        if given is not None and given != joints:
+            raise ControllerError(f'joints {given} disagree with the joint_names {joints} of the motion file '
+                                  f'{values["motion"]}: give one of them, or the same joints in the same order')
+        return Arm.from_urdf(urdf, None, joints, getattr(self.motion_file, 'locked', ())), joints
+
+    def _one_gain_form(self, parameters: list) -> list:
+        """A change of gains in the form not in force converts the gains to its form, so the node holds one:
+        kp (or kv) set on a node holding gains.<joint>.p/.d clears those, the other diagonal taken from them;
+        gains.<joint>.p (or .d) set on a node holding kp/kv clears kp and kv, the other joints' gains taken
+        from them. A change giving both forms is left as it is, to be refused."""
+        names = {parameter.name for parameter in parameters}
+        keyed = [gain_parameter(joint, key) for joint in self.joints for key in GAIN_KEYS]
+        current = proposed_values(self, ())
+        sets_positional = any(parameter.name in ('kp', 'kv') and parameter.value is not None
+                              and len(parameter.value) for parameter in parameters)
+        sets_keyed = any(parameter.name in keyed and parameter.value != 0.0 for parameter in parameters)
+        if sets_positional == sets_keyed:
+            return parameters
+        if sets_positional and names.isdisjoint(keyed) and any(current[name] != 0.0 for name in keyed):
+            extra = [Parameter(name, value=0.0) for name in keyed]
+            extra += [Parameter(diagonal, value=[float(current[gain_parameter(joint, key)]) for joint in self.joints])
+                      for diagonal, key in zip(('kp', 'kv'), GAIN_KEYS) if diagonal not in names]
+            return [*parameters, *extra]
+        held = {diagonal: current[diagonal] for diagonal in ('kp', 'kv')
+                if current[diagonal] is not None and len(current[diagonal])}
+        if sets_keyed and names.isdisjoint(('kp', 'kv')) and held:
+            extra = [Parameter(diagonal, Parameter.Type.DOUBLE_ARRAY, []) for diagonal in held]
+            if len(held) == 2 and all(len(values) == len(self.joints) for values in held.values()):
+                extra += [Parameter(gain_parameter(joint, key), value=float(held[diagonal][i]))
+                          for diagonal, key in zip(('kp', 'kv'), GAIN_KEYS) for i, joint in enumerate(self.joints)
+                          if gain_parameter(joint, key) not in names]
+            return [*parameters, *extra]
+        return parameters
 
     def _friction(self, values: dict) -> tuple:
         return tuple(checked_friction(name, values[name] if values[name] is not None and len(values[name]) else None,
@@ -121,11 +268,14 @@ class ControllerNode(Node):
     def _check_parameters(self, changes) -> SetParametersResult:
         values = proposed_values(self, changes)
         try:
-            effective_gains(self.law_name, values, self.model, self.reference)
+            effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
             checked_delay(values['compute_delay_steps'])
             self._friction(values)
         except GainError as error:
             return SetParametersResult(successful=False, reason=str(error))
+        if self.sampling == 'timer' and values['period'] != self.period:
+            return SetParametersResult(successful=False, reason=f'period is the timer\'s in timer mode: fixed at '
+                                                                f'{self.period} s while the node runs')
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, changes) -> None:
@@ -141,15 +291,22 @@ class ControllerNode(Node):
         self.get_logger().info(self._describe())
 
     def _set_gains(self, values: dict) -> None:
-        gains = effective_gains(self.law_name, values, self.model, self.reference)
+        gains = effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
         if gains is not None:
             self.controller.law.set_gains(*gains)
         self.gains_ready = gains is not None
 
+    def _set_reference(self, reference: Reference) -> None:
+        self.reference = reference
+        self.reference_gravity = gravity_feedforward(self.model, reference.q)
+        self._set_gains(proposed_values(self, ()))
+
     def _describe(self) -> str:
         law = self.controller.law
-        return (f'{self.law_name}: kp {np.round(law.kp, 6).tolist()}, kv {np.round(law.kv, 6).tolist()}, '
-                f'delay {self.controller.delay} sample(s), period {self.period} s')
+        gains = dict(zip(self.joints, zip(np.round(law.kp, 6).tolist(), np.round(law.kv, 6).tolist())))
+        return (f'{self.law_name}: (kp, kv) by joint {gains}, delay {self.controller.delay} sample(s), '
+                f'period {self.period} s, sampling {self.sampling}, commands as {self.command_type} on '
+                f"{self.command_publisher.topic_name}")
 
     def _incompatible_qos(self, event) -> None:
         self.incompatible_qos_events += 1
@@ -158,23 +315,26 @@ class ControllerNode(Node):
 
     def _on_reference(self, msg: JointTrajectory) -> None:
         try:
-            self.reference = read_reference(msg, self.joints, self.period)
+            reference = read_reference(msg, self.joints, self.period)
         except MessageError as error:
             self.refused_messages += 1
             self.get_logger().error(f'refused: {error}')
             return
-        self.reference_gravity = gravity_feedforward(self.model, self.reference.q)
-        self._set_gains(proposed_values(self, ()))
+        self._set_reference(reference)
         self.configuration += 1
         self.get_logger().info(f'reference of {len(self.reference.times)} samples; {self._describe()}')
         while self.waiting:
             self._command(self.waiting.popleft())
 
     def _on_reset(self, request, response):
-        """Clear the delay buffer; the reply (JSON, as ~/status gives) says what the next episode will run with."""
+        """Clear the delay buffer; the reply (JSON, as ~/status gives) says what the next episode will run with.
+
+        In timer mode the motion starts again from its start at the next tick with a state.
+        """
         self.controller.reset()
         self.last_sample = None
         self.waiting.clear()
+        self.start_time = self.tick_sample = None
         self.configuration += 1
         return self._on_status(request, response)
 
@@ -183,12 +343,16 @@ class ControllerNode(Node):
         response.success = self.reference is not None and self.gains_ready
         law = self.controller.law
         response.message = json.dumps({
-            'ready': response.success, 'kp': law.kp.tolist(), 'kv': law.kv.tolist(),
-            'delay': self.controller.delay, 'period': self.period,
+            'ready': response.success, 'kp': law.kp.tolist(), 'kv': law.kv.tolist(), 'joints': self.joints,
+            'delay': self.controller.delay, 'period': self.period, 'sampling': self.sampling,
             'reference_samples': 0 if self.reference is None else len(self.reference.times),
             'reference_final': None if self.reference is None else self.reference.q[-1].tolist(),
+            'sample': self.tick_sample if self.sampling == 'timer' else self.last_sample, 'ticks': self.ticks,
+            'refused_messages': self.refused_messages, **self.counters,
             'parameters': plain_parameters(proposed_values(self, ())), 'configuration': self.configuration})
         return response
+
+    # sampling: state ---------------------------------------------------------------------------
 
     def _on_state(self, msg: JointState) -> None:
         try:
@@ -220,14 +384,119 @@ class ControllerNode(Node):
         self._command(state)
 
     def _command(self, state) -> None:
-        q_ref, v_ref, a_ref = self.reference.point(state.n)
-        measurement = Measurement(state.q, state.v, q_ref, v_ref)
-        gravity_ref = self.reference_gravity[min(state.n, len(self.reference_gravity) - 1)]
-        torque = self.controller.step(measurement, ReferencePoint(q_ref, v_ref, a_ref), gravity_ref)
+        torque = self._torque(state.n, state.q, state.v)
+        if torque is not None:
+            self._publish(torque, state.n * self.period)
+
+    def _torque(self, n: int, q: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+        """The law's torque for sample n from this sample's state (delayed by the buffer); None if not finite."""
+        q_ref, v_ref, a_ref = self.reference.point(n)
+        gravity_ref = self.reference_gravity[min(n, len(self.reference_gravity) - 1)]
+        torque = self.controller.step(Measurement(q, v, q_ref, v_ref), ReferencePoint(q_ref, v_ref, a_ref),
+                                      gravity_ref)
         if not np.all(np.isfinite(torque)):
-            self.get_logger().error(f'no command for sample {state.n}: the law gave {torque.tolist()}')
+            self.counters['non_finite_commands'] += 1
+            self.get_logger().error(f'no command for sample {n}: the law gave {torque.tolist()}')
+            return None
+        return torque
+
+    def _publish(self, torque: np.ndarray, t: float) -> None:
+        if self.command_type == 'joint_state':
+            self.command_publisher.publish(joint_state_msg(self.joints, t, effort=torque))
+        else:
+            self.command_publisher.publish(effort_array_msg(torque))
+
+    # sampling: timer ---------------------------------------------------------------------------
+
+    def _on_robot_state(self, msg: JointState) -> None:
+        """Keep the latest state of our joints (others in the message ignored); refuse one that cannot be used."""
+        try:
+            state = read_robot_state(msg, self.joints)
+        except MessageError as error:
+            self.refused_messages += 1
+            self.counters['refused_states'] += 1
+            self.get_logger().error(f'refused a state ({self.counters["refused_states"]} so far): {error}',
+                                    throttle_duration_sec=LOG_EVERY)
             return
-        self.command_publisher.publish(joint_state_msg(self.joints, state.n * self.period, effort=torque))
+        if self.latest_state is not None and state.stamp < self.latest_state.stamp:
+            self.refused_messages += 1
+            self.counters['out_of_order_states'] += 1
+            self.get_logger().error(f'refused a state stamped {state.stamp * 1e-9:.9f} s: before the latest one, '
+                                    f'{self.latest_state.stamp * 1e-9:.9f} s '
+                                    f'({self.counters["out_of_order_states"]} so far)',
+                                    throttle_duration_sec=LOG_EVERY)
+            return
+        self.latest_state = state
+
+    def _on_tick(self) -> None:
+        """One sample: the command from the latest state and the motion at t_n, n counted from the first tick
+        with a fresh state. A state older than one period (or stamped more than one ahead) sends nothing."""
+        now = self.get_clock().now().nanoseconds
+        self.ticks += 1
+        state = self.latest_state
+        if state is None:
+            return
+        period = round(self.period * 1e9)
+        age = now - state.stamp
+        fresh = -period <= age <= period
+        if self.start_time is None:
+            if not fresh:
+                self._stale(age, 'the motion waits for a fresh one')
+                return
+            self.start_time, self.tick_sample = now, None
+            self.controller.reset()
+            self.get_logger().info(f'motion starts: sample 0 at {now * 1e-9:.9f} s on the node\'s clock')
+        n = round((now - self.start_time) / period)
+        if self.tick_sample is not None and n <= self.tick_sample:
+            self.counters['clock_faults'] += 1
+            self.get_logger().error(f'the clock went back to sample {n} (sample {self.tick_sample} came already): '
+                                    'no command; ~/reset starts the motion again', throttle_duration_sec=LOG_EVERY)
+            return
+        if self.tick_sample is not None and n > self.tick_sample + 1:
+            self.counters['missed_ticks'] += n - self.tick_sample - 1
+        self.tick_sample = n
+        if not fresh:
+            self._stale(age, f'no command for sample {n}')
+        else:
+            torque = self._torque(n, state.q, state.v)
+            if torque is not None:
+                self._publish(torque, now * 1e-9)
+        if n == len(self.reference.times) - 1:
+            self.get_logger().info(f'motion done at sample {n}: holding the goal; {json.dumps(self.counters)}')
+        if n % max(1, round(1.0 / self.period)) == 0:
+            self._report(n)
+
+    def _stale(self, age: int, consequence: str) -> None:
+        """A tick whose latest state is more than one period old (or ahead of the node's clock): counted, logged."""
+        key = 'stale_ticks' if age > 0 else 'future_ticks'
+        self.counters[key] += 1
+        self.get_logger().warning(
+            f'{consequence}: the latest state is {abs(age) * 1e-9:.6f} s '
+            f'{"old" if age > 0 else "ahead of the node clock"}, more than one period '
+            f'({self.counters[key]} {key.replace("_", " ")} so far)', throttle_duration_sec=LOG_EVERY)
+
+    def _watch(self) -> None:
+        """Until the motion starts: what it waits for, every WATCH_EVERY s of wall time."""
+        if self.start_time is not None:
+            return
+        if self.ticks == 0 and self.get_parameter('use_sim_time').value:
+            self.get_logger().warning(f'no tick in {WATCH_EVERY:g} s: use_sim_time is true and no /clock arrives')
+        elif self.latest_state is None:
+            self.get_logger().warning(f'waiting for a state of {self.joints} on {self.state_subscription.topic_name} '
+                                      f'({self.counters["refused_states"]} refused so far)')
+
+    def _report(self, n: int) -> None:
+        """Timer mode's counters on /diagnostics, about once a second of ticks."""
+        faults = sum(self.counters.values()) + self.refused_messages
+        values = {'node': self.get_fully_qualified_name(), 'sample': n, 'refused_messages': self.refused_messages,
+                  **self.counters}
+        status = DiagnosticStatus(level=DiagnosticStatus.WARN if faults else DiagnosticStatus.OK,
+                                  name=f'ddarm/{self.law_name}', hardware_id='ddarm',
+                                  message=f'{faults} fault(s) so far' if faults else 'ok',
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_publisher.publish(array)
 
 
 def main(args=None, law: str | None = None) -> int:
@@ -238,7 +507,7 @@ def main(args=None, law: str | None = None) -> int:
             print(f'usage: controller {{{",".join(CONTROLLERS)}}} [--ros-args ...]', file=sys.stderr)
             return 2
         law = non_ros[0]
-    return run_node(lambda: ControllerNode(law), law, (GainError, ModelError), args)
+    return run_node(lambda: ControllerNode(law), law, (GainError, ModelError, MotionError, ControllerError), args)
 
 
 def main_pd_gravity(args=None) -> int:

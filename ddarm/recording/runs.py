@@ -17,13 +17,32 @@ from ddarm.interrupts import Interrupted, critical_section
 DEFAULT_ROOT = Path('runs')
 
 
-def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenance: str) -> str:
-    """A parameter file that `ros2 run ddarm_control <controller> --ros-args --params-file` loads as it is."""
-    body = {controller: {'ros__parameters': {
-        'kp': [float(x) for x in kp], 'kv': [float(x) for x in kv], 'omega': 0.0,
-        'compute_delay_steps': int(delay), 'period': float(period)}}}
+def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenance: str, *,
+                    joint_names, urdf: str | Path | None = None, motion: str | Path | None = None) -> str:
+    """A parameter file that `ros2 run ddarm_control <controller> --ros-args --params-file` loads as it is.
+
+    The gains are keyed by joint name, as ros2_controllers write them (`gains: {<joint>: {p: K_p, d: K_v}}`,
+    which ROS 2 reads as the parameters gains.<joint>.p and .d); `joint_names` are the controller's joints
+    in the order of kp and kv. `urdf` (the controller's model) and `motion` (its joints and, with
+    sampling:=timer, its reference) are written when given, as absolute paths, so the file is all the
+    robot's controller node needs.
+    """
+    names = list(joint_names)
+    if not names or not all(isinstance(name, str) and name for name in names) or len(set(names)) != len(names):
+        raise ValueError(f'joint_names must be distinct non-empty names, got {names!r}')
+    if not len(kp) == len(kv) == len(names):
+        raise ValueError(f'{len(names)} joint_names {names} for {len(kp)} kp and {len(kv)} kv values')
+    parameters = {}
+    for name, value in (('urdf', urdf), ('motion', motion)):
+        if value:
+            parameters[name] = str(Path(value).resolve())
+    parameters.update({
+        'gains': {name: {'p': float(p), 'd': float(d)} for name, p, d in zip(names, kp, kv)}, 'omega': 0.0,
+        'compute_delay_steps': int(delay), 'period': float(period)})
     header = ''.join(f'# {line}\n' for line in provenance.splitlines())
-    return header + yaml.safe_dump(body, sort_keys=False)
+    # Flow style for the innermost mappings: one line per joint, `<joint>: {p: …, d: …}`.
+    return header + yaml.safe_dump({controller: {'ros__parameters': parameters}}, sort_keys=False,
+                                   default_flow_style=None)
 
 
 class RunFolder:

@@ -16,12 +16,14 @@ from builtin_interfaces.msg import Duration, Time
 from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ddarm.control.laws import GainError
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
-from ddarm.samples import MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.samples import MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at
 
 JOINT_STATES_TOPIC = 'joint_states'
 EFFORT_COMMAND_TOPIC = 'effort_command'
@@ -44,6 +46,17 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=R
                        durability=DurabilityPolicy.VOLATILE)
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.VOLATILE)
+# A robot (or a plant the controller did not start) in real time: only the latest state and command matter.
+# Best effort on the state side hears reliable publishers too (joint_state_broadcaster's, the plant's) and
+# best-effort ones (drivers publishing sensor-data QoS); reliable commands reach every subscriber
+# (forward_command_controller listens reliably), and a depth of 1 never delivers a backlog of old efforts.
+ROBOT_STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                             durability=DurabilityPolicy.VOLATILE)
+ROBOT_COMMAND_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                               durability=DurabilityPolicy.VOLATILE)
+# How a controller sends its efforts: a stamped JointState with names (ddarm's plant), or the bare array a
+# ros2_control forward_command_controller on effort interfaces takes (`/<controller>/commands`).
+COMMAND_TYPES = ('joint_state', 'float64_multi_array')
 
 
 def time_msg(seconds: float) -> Time:
@@ -94,6 +107,42 @@ def read_joint_state(msg: JointState, joints: list[str], period: float, what: st
                        field(msg.effort, 'effort', need_effort))
 
 
+@dataclass(frozen=True)
+class RobotState:
+    """A JointState from a robot read for our joints: its stamp (ns, on the publisher's clock) and q, q̇."""
+
+    stamp: int
+    q: np.ndarray
+    v: np.ndarray
+
+
+def read_robot_state(msg: JointState, joints: list[str], what: str = 'joint state') -> RobotState:
+    """Our joints' positions and velocities by name from a JointState that may carry others (a gripper's, in any
+    order): those are ignored, unchecked; a joint of ours missing, a duplicate name, or arrays of another length
+    than the names are refused. The stamp is any time (a robot's clock), never a sample index."""
+    names = list(msg.name)
+    if len(names) > MAX_JOINTS:
+        raise MessageError(f'{what}: {len(names)} joint names is more than the {MAX_JOINTS} allowed')
+    if len(set(names)) != len(names):
+        raise MessageError(f'{what}: duplicate joint names {sorted({n for n in names if names.count(n) > 1})}')
+    missing = [joint for joint in joints if joint not in names]
+    if missing:
+        raise MessageError(f'{what}: missing joints {missing} (it names {names}; controlled: {joints})')
+    order = np.array([names.index(joint) for joint in joints])
+
+    def field(values, label: str) -> np.ndarray:
+        if len(values) != len(names):
+            raise MessageError(f'{what}: {label} has {len(values)} values for {len(names)} joint names')
+        ours = np.array(values, dtype=float)[order]
+        bad = [joint for joint, value in zip(joints, ours) if not np.isfinite(value)]
+        if bad:
+            raise MessageError(f'{what}: {label} is not finite for {bad}: {ours[~np.isfinite(ours)].tolist()}')
+        return ours
+
+    stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    return RobotState(stamp, field(msg.position, 'position'), field(msg.velocity, 'velocity'))
+
+
 def joint_state_msg(joints: list[str], t: float, q: np.ndarray | None = None, v: np.ndarray | None = None,
                     effort: np.ndarray | None = None) -> JointState:
     msg = JointState()
@@ -103,6 +152,11 @@ def joint_state_msg(joints: list[str], t: float, q: np.ndarray | None = None, v:
     msg.velocity = [] if v is None else [float(x) for x in v]
     msg.effort = [] if effort is None else [float(x) for x in effort]
     return msg
+
+
+def effort_array_msg(effort: np.ndarray) -> Float64MultiArray:
+    """The efforts as a forward_command_controller takes them: the data in its `joints` order, no layout."""
+    return Float64MultiArray(data=[float(x) for x in effort])
 
 
 @dataclass(frozen=True)
@@ -155,6 +209,79 @@ def descriptor(description: str, *, floating: tuple[float, float] | None = None,
     return described
 
 
+# Gains keyed by joint name, as ros2_controllers' pid gains: `gains: {joint: {p: …, d: …}}` in a parameter file,
+# which ROS 2 flattens into the parameters gains.<joint>.p (K_p) and gains.<joint>.d (K_v).
+GAINS_PREFIX = 'gains'
+GAIN_KEYS = ('p', 'd')
+
+
+def gain_parameter(joint: str, key: str) -> str:
+    """gains.<joint>.<key>: the parameter of one joint's K_p (key p) or K_v (key d)."""
+    return f'{GAINS_PREFIX}.{joint}.{key}'
+
+
+def gain_joint(name: str) -> str | None:
+    """The joint a gains.<joint>.<key> parameter name is for (None for any other name)."""
+    head, dot, rest = name.partition('.')
+    joint, dot, key = rest.rpartition('.')
+    return joint if head == GAINS_PREFIX and dot and joint and key in GAIN_KEYS else None
+
+
+def given_gains(values: dict, joints: list[str]) -> tuple:
+    """(kp, kv) as a controller's parameters give them (flat names, as a node holds them: `flat_parameters`):
+    by joint name (gains.<joint>.p and .d, every joint's or none) or the positional kp and kv (None where
+    unset). GainError when given both ways, by name for some joints only or for a joint not in `joints`, or not
+    at all with omega = 0.
+    """
+    strangers = sorted({gain_joint(name) for name in values} - {None} - set(joints))
+    if strangers:
+        raise GainError(f'gains for {"joint" if len(strangers) == 1 else "joints"} '
+                        f'{", ".join(repr(joint) for joint in strangers)}, which the controller does not control: '
+                        f'its joints are {list(joints)}')
+    keyed = {gain_parameter(joint, key): values.get(gain_parameter(joint, key), 0.0)
+             for joint in joints for key in GAIN_KEYS}
+    set_keyed = [name for name, value in keyed.items() if value != 0.0]
+    positional = [name for name in ('kp', 'kv') if values.get(name) is not None and len(values[name])]
+    if set_keyed and positional:
+        more = f' and {len(set_keyed) - 1} more gains.<joint> parameters' if len(set_keyed) > 1 else ''
+        raise GainError(f'gains given twice: by {" and ".join(positional)} and by {set_keyed[0]}{more}; give '
+                        f'them one way, gains.<joint>.p and .d or the positional kp and kv')
+    if set_keyed:
+        unset = [name for name, value in keyed.items() if value == 0.0]
+        if unset:
+            raise GainError(f'{", ".join(unset)} unset (0): give gains.<joint>.p and .d for every joint of '
+                            f'{joints}, or for none')
+        return tuple([keyed[gain_parameter(joint, key)] for joint in joints] for key in GAIN_KEYS)
+    if not values.get('omega') and not positional:
+        raise GainError(f'set the gains: gains.<joint>.p and .d for each joint of {joints}, or kp and kv '
+                        f'(one value per joint, in that order), or omega > 0')
+    return values.get('kp'), values.get('kv')
+
+
+def flat_parameters(parameters: dict, prefix: str = '') -> dict:
+    """A `ros__parameters` mapping as ROS 2 reads it: nested mappings flattened into dotted names
+    (`gains: {joint1: {p: 1.0}}` is gains.joint1.p)."""
+    flat = {}
+    for key, value in parameters.items():
+        if isinstance(value, dict):
+            flat.update(flat_parameters(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
+
+
+def unknown_parameters_reason(names, what: str, joints=None) -> str:
+    """Why undeclared parameters are refused: gains for joints the node does not control named as such."""
+    names = sorted(set(names))
+    strangers = sorted({gain_joint(name) for name in names} - {None} - set(joints or ()))
+    if strangers:
+        return (f'{names} (gains for {"joint" if len(strangers) == 1 else "joints"} '
+                f'{", ".join(repr(joint) for joint in strangers)}, which the {what} controller does not control: '
+                f'its joints are {list(joints or ())})')
+    kind = f'a {what} parameter' if len(names) == 1 else f'{what} parameters'
+    return f'{names} (not {kind}: a typo?)'
+
+
 def undeclared_overrides(node, given=()) -> list[str]:
     """Parameters given to the node that it never declared: most likely typos.
 
@@ -169,20 +296,22 @@ def undeclared_overrides(node, given=()) -> list[str]:
                   if not node.has_parameter(name) and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
 
 
-def refuse_undeclared_parameters(node, what: str) -> None:
+def refuse_undeclared_parameters(node, what: str, joints=None, rewrite=None) -> None:
     """Make the node refuse to set undeclared parameters with a reason that names them.
 
     rclpy (7.1) refuses them with "undeclared parameter(s): []": its check consumes the
     generator of names before it lists them. A pre-set callback runs before that check, so
     both the parameter services and a local set_parameters give this reason instead.
-    `what` names the node's kind for the hint ("not a plant parameter").
+    `what` names the node's kind for the hint ("not a plant parameter"); a controller gives its
+    `joints`, so that gains.<joint>.p for a joint it does not control is refused naming the joint.
+    `rewrite(parameters) -> parameters` then adds to a change what must change with it: rclpy (7.1)
+    concatenates what each pre-set callback returns, so a node has this one.
     """
     def check(parameters: list) -> list:
         unknown = sorted({parameter.name for parameter in parameters if not node.has_parameter(parameter.name)})
         if unknown:
-            kind = f'a {what} parameter' if len(unknown) == 1 else f'{what} parameters'
-            raise ParameterNotDeclaredException(f'{unknown} (not {kind}: a typo?)')
-        return parameters
+            raise ParameterNotDeclaredException(unknown_parameters_reason(unknown, what, joints))
+        return parameters if rewrite is None else rewrite(parameters)
 
     node.add_pre_set_parameters_callback(check)
 
