@@ -17,6 +17,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
+from ddarm.episodes.spec import motion_of_duration, read_motion_file
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
@@ -29,7 +30,7 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
 from ddarm.ros.executable import run_node
 from ddarm.samples import MessageError
 from ddarm.arrays import per_joint
-from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_start, paper_trajectory
+from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_start
 
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
@@ -55,8 +56,68 @@ def _optional_array(values) -> np.ndarray | None:
     return None if values is None or len(values) == 0 else np.array(values, dtype=float)
 
 
-def plant_settings(values: dict, dof: int) -> PlantSettings:
+def _motion_problem(values: dict, error: Exception) -> PlantError:
+    """A problem of the motion file, naming the parameter and the file."""
+    return PlantError(f"parameter motion = {values['motion']!r}: {error}")
+
+
+# The joints a motion file controls and the ones it locks (name, position): what the plant's arm was reduced by.
+Reduction = tuple[tuple[str, ...], tuple[tuple[str, float], ...]]
+
+
+def plant_arm(values: dict) -> tuple[Arm, Reduction | None]:
+    """The arm the plant integrates, and the motion file's joints it was reduced by (None: every movable joint).
+
+    With a `motion`, the URDF is reduced to the file's joints, every other movable joint locked
+    where the file says (at 0 otherwise), as `ddarm.episodes.spec.plant_arm` reduces it; without
+    one, the arm has every movable joint of the URDF.
+    """
+    urdf = values['urdf'] or None
+    if not values['motion']:
+        return Arm.from_urdf(urdf), None
+    try:
+        file = read_motion_file(values['motion'])
+        reduction = file.joint_names, file.locked
+        return Arm.from_urdf(urdf, None, *reduction), reduction
+    except (MotionError, ModelError) as error:
+        raise _motion_problem(values, error) from error
+
+
+def start_state(values: dict, arm: Arm, reduced_by: Reduction | None) -> tuple[np.ndarray, np.ndarray]:
+    """q(0), q̇(0): initial_position/initial_velocity (trajectory 0), else (3.1) against the motion file's
+    q^d (`motion`) or the paper trajectory's (`trajectory`), a bang-bang motion stretched to `duration`."""
+    dof = arm.dof
+    trajectory = values['trajectory']
+    if trajectory == 0:
+        return tuple(np.zeros(dof) if _optional_array(values[name]) is None
+                     else per_joint(name, values[name], dof, PlantError)
+                     for name in ('initial_position', 'initial_velocity'))
+    if not values['motion'] and trajectory not in PAPER_TRAJECTORIES:
+        raise PlantError(f'trajectory must be 0 (initial_position) or one of {list(PAPER_TRAJECTORIES)}')
+    try:
+        file = read_motion_file(values['motion'] or None, trajectory)
+        if reduced_by is not None:
+            joints, locked = file.joint_names, file.locked
+            if (joints, locked) != reduced_by:
+                # The arm is built at start: a file edited since then describes another arm.
+                raise PlantError(f'the file now controls joints {list(joints)} and locks {dict(locked)}; the plant '
+                                 f'started with joints {list(reduced_by[0])}, locked {dict(reduced_by[1])}: '
+                                 'restart the plant to run it')
+        motion = motion_of_duration(file, values['duration'])
+        if motion.dof != dof:
+            raise PlantError(f'trajectory {trajectory} has {motion.dof} joints, the URDF {dof}')
+        return disturbed_start(motion, values['tau'])
+    except (MotionError, PlantError) as error:
+        if values['motion']:
+            raise _motion_problem(values, error) from error
+        if isinstance(error, PlantError):
+            raise
+        raise PlantError(str(error)) from error
+
+
+def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) -> PlantSettings:
     """Build and check the settings from parameter values; PlantError names the first problem."""
+    dof = arm.dof
     if values['mode'] not in MODES:
         raise PlantError(f"mode must be one of {MODES}, got {values['mode']!r}")
     options = PlantOptions(
@@ -68,20 +129,7 @@ def plant_settings(values: dict, dof: int) -> PlantSettings:
     mass_scale = _optional_array(values['mass_scale'])
     if mass_scale is not None:
         checked_mass_scale(mass_scale, dof)
-    trajectory = values['trajectory']
-    if trajectory == 0:
-        q0, v0 = (np.zeros(dof) if _optional_array(values[name]) is None
-                  else per_joint(name, values[name], dof, PlantError) for name in ('initial_position', 'initial_velocity'))
-    else:
-        if trajectory not in PAPER_TRAJECTORIES:
-            raise PlantError(f'trajectory must be 0 (initial_position) or one of {list(PAPER_TRAJECTORIES)}')
-        motion = paper_trajectory(trajectory, values['duration'])
-        if motion.dof != dof:
-            raise PlantError(f'trajectory {trajectory} has {motion.dof} joints, the URDF {dof}')
-        try:
-            q0, v0 = disturbed_start(motion, values['tau'])
-        except MotionError as error:
-            raise PlantError(str(error)) from error
+    q0, v0 = start_state(values, arm, reduced_by)
     return PlantSettings(values['mode'], values['period'], values['command_timeout'],
                          values['required_subscribers'], values['max_samples'], options,
                          None if mass_scale is None else tuple(mass_scale), q0, v0)
@@ -93,16 +141,18 @@ class PlantNode(Node):
     lockstep: the state of t_n is published, and [t_n, t_{n+1}) is integrated only once the
     command stamped t_n arrives; a command missing for `command_timeout` wall seconds ends the
     episode with an error. realtime: a wall timer at 1/Δ integrates under the latest command.
+    The arm is built once, at start: the `urdf` reduced to the joints of the `motion` file (or
+    with every movable joint), and /joint_states names its joints.
     """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('plant', **kwargs)
         self.incompatible_qos_events = 0
         self._declare_parameters()
-        self.arm = Arm.from_urdf(self.get_parameter('urdf').value or None)
-        self.joints = self.arm.joint_names
+        self.arm, self.reduced_by = plant_arm(self._parameter_values())
+        self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
         self.chain = chain_from_model(self.arm.model)
-        self.settings = plant_settings(self._parameter_values(), self.arm.dof)
+        self.settings = plant_settings(self._parameter_values(), self.arm, self.reduced_by)
         warm_up(self.chain)
         refuse_undeclared_parameters(self, 'plant')
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -139,6 +189,8 @@ class PlantNode(Node):
         double_array = Parameter.Type.DOUBLE_ARRAY
         declared = [
             ('urdf', '', descriptor('URDF of the arm ("" = the ddarm arm)', read_only=True)),
+            ('motion', '', descriptor('a motion file: the controlled joints, locked joints and q^d(0); '
+                                      '"" = the paper trajectory of `trajectory`', read_only=True)),
             ('mode', 'lockstep', descriptor('lockstep (deterministic) or realtime (wall clock at 1/period)')),
             ('period', 0.01, descriptor('sampling period Δ in s', floating=NODE_PERIOD_RANGE)),
             ('substeps', DEFAULT_SUBSTEPS, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
@@ -151,10 +203,11 @@ class PlantNode(Node):
             ('coulomb_friction', double_array, descriptor('Coulomb friction N m per joint (unset: none)')),
             ('external_torque', double_array, descriptor('constant external joint torques P^z in N m (unset: none)')),
             ('mass_scale', double_array, descriptor('plant link mass / model link mass per link (unset: 1)')),
-            ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)}; '
-                                         '0: initial_position/velocity', integer=(0, max(PAPER_TRAJECTORIES)))),
-            ('duration', 1.0, descriptor('T of the programmed motion in s (for the start state)',
-                                         floating=(1e-3, 3600.0))),
+            ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} '
+                                         '(of `motion`, when set, whatever the number); 0: '
+                                         'initial_position/velocity', integer=(0, max(PAPER_TRAJECTORIES)))),
+            ('duration', 1.0, descriptor('T of the programmed motion in s (for the start state; a bang-bang '
+                                         'motion is stretched to it)', floating=(1e-3, 3600.0))),
             ('tau', 0.0, descriptor('initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s',
                                     floating=(0.0, 3600.0))),
             ('initial_position', double_array, descriptor('start position when trajectory = 0')),
@@ -169,7 +222,7 @@ class PlantNode(Node):
 
     def _check_parameters(self, changes) -> SetParametersResult:
         try:
-            plant_settings(self._parameter_values(changes), self.arm.dof)
+            plant_settings(self._parameter_values(changes), self.arm, self.reduced_by)
         except (PlantError, ModelError, ValueError) as error:
             return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
@@ -188,7 +241,7 @@ class PlantNode(Node):
         whoever reset the plant can tell whether another node changed them first.
         """
         values = self._parameter_values()
-        self.settings = plant_settings(values, self.arm.dof)
+        self.settings = plant_settings(values, self.arm, self.reduced_by)
         self.plant = Plant(self.chain, self.settings.options, self.settings.q0, self.settings.v0,
                            self.settings.mass_scale)
         self.latest_command, self.latest_command_sample = None, -1

@@ -15,13 +15,14 @@ from ddarm.control.laws import CONTROLLERS, MAX_DELAY
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.ros.executable import run_executable
-from ddarm.ros.interface import descriptor, proposed_values, refuse_undeclared_parameters, undeclared_overrides
+from ddarm.ros.interface import (descriptor, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
+                                 undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
 from ddarm.episodes.indices import INDICES
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode, read_motion_file
 from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError
-from ddarm.ros.node_parameters import episode_record
+from ddarm.ros.node_parameters import READ_ONLY, episode_record, same_read_only
 from ddarm.recording.runs import DEFAULT_ROOT, RunFolder
 
 
@@ -44,14 +45,22 @@ class TunerNode(GraphDriver):
             ('kp', double_array, descriptor('K_p diagonal (unless gains_file)')),
             ('kv', double_array, descriptor('K_v diagonal (unless gains_file)')),
             ('gains_file', '', descriptor('controller parameter YAML with kp, kv, compute_delay_steps')),
-            ('trajectory', 1, descriptor(f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)}',
+            ('urdf', '', descriptor('URDF of the plant\'s arm ("" = the ddarm arm); the plant node must run it',
+                                    read_only=True)),
+            ('model_urdf', '', descriptor('URDF of the controller\'s model ("" = urdf); the controller node must '
+                                          'run it', read_only=True)),
+            ('motion', '', descriptor('a motion file: the controlled joints, locked joints and q^d ("" = the paper '
+                                      'trajectory of `trajectory`); plant and controller must run it', read_only=True)),
+            ('trajectory', 1, descriptor(f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)} (unless motion)',
                                          integer=(min(PAPER_TRAJECTORIES), max(PAPER_TRAJECTORIES)))),
-            ('duration', 1.0, descriptor('T in s', floating=(1e-3, 3600.0))),
+            ('duration', 0.0, descriptor('T in s (0: the motion\'s own; a bang-bang motion is stretched to T)',
+                                         floating=(0.0, 3600.0))),
             ('period', 0.01, descriptor('Δ in s', floating=NODE_PERIOD_RANGE)),
             ('delay', 1, descriptor('compute delay d in samples (unless gains_file)', integer=(0, MAX_DELAY))),
             ('substeps', DEFAULT_SUBSTEPS, descriptor('plant RK4 steps per period', integer=(1, MAX_SUBSTEPS))),
             ('taus', [0.0], descriptor('initial velocity disturbances τ (3.1), one episode each, s')),
-            ('torque_limits', ['none'], descriptor("'none' and/or 'paper' (2 x max nominal), each with every τ")),
+            ('torque_limits', ['none'], descriptor("'none', 'paper' (2 x max nominal) and/or 'urdf' (its <limit "
+                                                   "effort>), each with every τ")),
             ('output_root', str(DEFAULT_ROOT), descriptor('folder that holds the run folders')),
             ('run_name', '', descriptor('run folder name ("" = tuner-<date>-<time>); never reused')),
             ('storage', 'mcap', descriptor('bag storage: mcap or sqlite3')),
@@ -86,15 +95,24 @@ class TunerNode(GraphDriver):
                 with open(values['gains_file']) as file:
                     document = yaml.safe_load(file)
                 gains = document[values['controller']]['ros__parameters']
-                kp, kv = gains['kp'], gains['kv']
+                # Read by the controller node's own rule: gains.<joint>.p/.d or the positional kp/kv.
+                joints = read_motion_file(values['motion'] or None, values['trajectory']).joint_names
+                kp, kv = given_gains({**flat_parameters(gains), 'omega': 0.0}, list(joints))
                 delay, period = gains.get('compute_delay_steps', values['delay']), gains.get('period')
-            except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError) as error:  # ValueError: not UTF-8
-                raise EpisodeError(f"gains_file {values['gains_file']}: no {values['controller']} kp/kv "
+            except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as error:
+                # ValueError: not UTF-8, or gains the controller would refuse (GainError, MotionError)
+                raise EpisodeError(f"gains_file {values['gains_file']}: no {values['controller']} gains "
                                    f'({type(error).__name__}: {error})') from error
             if period is not None and period != values['period']:
                 # Gains tuned for one sampling period are other gains at another: never swept silently.
                 raise EpisodeError(f"gains_file {values['gains_file']} holds gains for period {period!r} s; the "
                                    f"sweep's period is {values['period']!r} s: set period to match")
+            wanted = {'urdf': values['model_urdf'] or values['urdf'], 'motion': values['motion']}
+            for name in READ_ONLY:  # gains for another arm or other joints: other gains too
+                if name in gains and not same_read_only(name, gains[name], wanted[name]):
+                    raise EpisodeError(f"gains_file {values['gains_file']} holds gains for the controller's {name} "
+                                       f"{gains[name]!r}; the sweep's is {wanted[name]!r}: set urdf, model_urdf "
+                                       'and motion to match')
             return kp, kv, delay
         if values['kp'] is None or values['kv'] is None:
             raise EpisodeError('set kp and kv, or gains_file')
@@ -113,9 +131,10 @@ class TunerNode(GraphDriver):
                     raise EpisodeError(f'taus: {tau!r} is not a finite number')
                 try:
                     spec = EpisodeSpec(controller=values['controller'], kp=kp, kv=kv,
-                                       trajectory=values['trajectory'], duration=values['duration'],
+                                       trajectory=values['trajectory'], duration=values['duration'] or None,
                                        period=values['period'], delay=delay, tau=tau, torque_limit=limit,
-                                       substeps=values['substeps'])
+                                       substeps=values['substeps'], urdf=values['urdf'] or None,
+                                       model_urdf=values['model_urdf'] or None, motion=values['motion'] or None)
                     plan = check_episode(spec)
                 except (EpisodeError, TypeError, ValueError) as error:
                     source = f"gains_file {values['gains_file']}" if values['gains_file'] else 'parameters'

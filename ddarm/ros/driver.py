@@ -13,7 +13,7 @@ from pathlib import Path
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
@@ -27,13 +27,12 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                  EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                  SAMPLE_QOS, read_joint_state, reference_msg)
 from ddarm.ros.names import fully_qualified, namespace_arguments
-from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, service_parameters,
-                                       node_parameters)
+from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
+                                       arm_parameters, node_parameters, same_read_only, service_parameters)
 from ddarm.samples import MessageError
 from ddarm.recording.bags import EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
-from ddarm.physics.arm import default_urdf_path, load_arm
 from ddarm.interrupts import check_stop
 
 # Wall seconds to wait for the plant and the controller to be on the graph, alone, before an episode.
@@ -41,6 +40,10 @@ PEER_TIMEOUT = 20.0
 # How often the graph is checked while an episode runs, and how long a node may be missing from
 # it before the episode fails (discovery can lag a little; a foreign publisher fails at once).
 GRAPH_CHECK_PERIOD = 0.5
+# A driver's first look at the graph waits this long with the graph as it must be: a context's DDS participant is
+# made with its first node (and destroyed with its last), and discovers the others one by one, so a fresh one can
+# see the plant and one controller before the second controller on the domain.
+DISCOVERY_SETTLE = 1.0
 PEER_LOSS_GRACE = 1.0
 # A plant that owes the next state (its command was heard) and sends nothing for this long has
 # stalled or died; DDS itself notices a killed process only after its 20 s lease.
@@ -134,7 +137,7 @@ class GraphDriver(Node):
         super().__init__(name, namespace=namespace or None, cli_args=['--ros-args', *rules] if rules else None,
                          **kwargs)
         self.plant_node = plant_node
-        self.joints = load_arm(None).joint_names
+        self.joints: list[str] = []  # the episode's joints (its plan's), in the order of every per-joint array
         self.recording: Recording | None = None
         self.bag: EpisodeBagWriter | None = None
         self.period = 0.01
@@ -156,6 +159,7 @@ class GraphDriver(Node):
             self.reset_clients[law] = self.create_client(Trigger, f'{law}/reset')
             self.status_clients[law] = self.create_client(Trigger, f'{law}/status')
         self._next_graph_check = 0.0
+        self._graph_settled = False  # DISCOVERY_SETTLE waited once
         self._peer_missing_since: float | None = None
         self.last_traffic = 0.0  # wall time of the last state or command heard, in an episode or not
 
@@ -211,11 +215,18 @@ class GraphDriver(Node):
     def wait_for_peers(self, executor, law: str, timeout: float = PEER_TIMEOUT, alive=lambda: None) -> None:
         """Until the plant and the `law` controller are on the graph, alone; names what is wrong if they never are."""
         deadline = time.monotonic() + timeout
+        settled_at = None
         while True:
             check_stop()
             foreign, missing = self.graph_problems(law)
             if not foreign and not missing:
-                return
+                now = time.monotonic()
+                settled_at = settled_at or now + (0.0 if self._graph_settled else DISCOVERY_SETTLE)
+                if now >= settled_at:
+                    self._graph_settled = True
+                    return
+            else:
+                settled_at = None
             if time.monotonic() > deadline:
                 raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
             if not self.context.ok():
@@ -381,6 +392,28 @@ class GraphDriver(Node):
         self._spin_until(executor, future.done, deadline, f'a reply from {client.srv_name}', alive)
         return future.result()
 
+    def _read_only(self, executor, node: str, deadline: float, alive) -> dict:
+        """The node's READ_ONLY parameters ('' for one it does not declare)."""
+        client = self.parameter_clients[node]
+        self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
+                         alive)
+        values = {}
+        for name in READ_ONLY:  # one at a time: a node answers a request naming an undeclared one with nothing
+            future = client.get_parameters([name])
+            self._spin_until(executor, future.done, deadline, f'parameter {name} of {self.node_name(node)}', alive)
+            answer = future.result().values
+            values[name] = parameter_value_to_python(answer[0]) if answer else ''
+        return values
+
+    def _check_arm(self, executor, node: str, wanted: dict, deadline: float, alive) -> None:
+        """The node was started with the episode's URDF and motion file (`arm_parameters`)."""
+        started = self._read_only(executor, node, deadline, alive)
+        differ = [f'{name} is {started[name]!r}, the episode\'s {wanted[name]!r}' for name in READ_ONLY
+                  if not same_read_only(name, started[name], wanted[name])]
+        if differ:
+            raise GraphEpisodeError(f'{self.node_name(node)} runs another arm than the episode ({"; ".join(differ)}): '
+                                    'start it with the episode\'s read-only parameters urdf and motion')
+
     def _configure(self, executor, node: str, parameters: list[Parameter], deadline: float, alive) -> None:
         client = self.parameter_clients[node]
         self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
@@ -396,11 +429,10 @@ class GraphDriver(Node):
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
                     alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> Episodes:
         """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died."""
-        if spec.urdf is not None and Path(spec.urdf).resolve() != default_urdf_path().resolve():
-            # The nodes run the arm of their own `urdf` parameter, set when they start: never another one silently.
-            raise GraphEpisodeError(f'the graph runs the nodes\' arm ({default_urdf_path()}); an episode of '
-                                    f'{spec.urdf} runs in-process only')
         plan = plan if plan is not None else check_episode(spec)
+        if not plan.joint_names:
+            raise GraphEpisodeError('the episode\'s plan names no joints (a plan read back from a recording?): '
+                                    'plan it with ddarm.episodes.spec.check_episode')
         self.wait_for_peers(executor, spec.controller, peer_timeout, alive)
         deadline = time.monotonic() + timeout
 
@@ -412,13 +444,17 @@ class GraphDriver(Node):
                 if stalled:
                     self.recording.fail(stalled)
 
+        # The nodes run the arm of their read-only parameters, given when they started: never another one silently.
+        arms = arm_parameters(spec)
+        self._check_arm(executor, self.plant_node, arms['plant'], deadline, watching)
+        self._check_arm(executor, spec.controller, arms[spec.controller], deadline, watching)
         parameters = node_parameters(spec, plan, mode)
         plant_parameters = service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
         controller_parameters = service_parameters(parameters[spec.controller]['ros__parameters'],
                                                     CONTROLLER_OPTIONAL)
         self._configure(executor, self.plant_node, plant_parameters, deadline, watching)
         self._configure(executor, spec.controller, controller_parameters, deadline, watching)
-        self.period, self.bag = spec.period, bag
+        self.period, self.bag, self.joints = spec.period, bag, list(plan.joint_names)
         self._peer_missing_since = None
         try:
             reference = reference_msg(self.joints, plan.times, plan.q_ref, plan.v_ref, plan.a_ref, plan.nominal)

@@ -3,21 +3,49 @@ run an EpisodeSpec, the subset set through their parameter services, and the rec
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from rclpy.parameter import Parameter
 
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
-from ddarm.physics.arm import load_arm
+from ddarm.physics.arm import same_urdf
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
 # The plant starts an episode once this many nodes listen to it: the controller and the driver.
 GRAPH_SUBSCRIBERS = 2
+# What a node is built from when it starts (its arm and the joints it controls): given at start, never set
+# through the parameter services. '' is the default: the paper's arm, and its joints (or every movable joint).
+READ_ONLY = ('urdf', 'motion')
+
+
+def arm_parameters(spec: EpisodeSpec) -> dict[str, dict[str, str]]:
+    """The read-only parameters the plant and the `spec` law's controller must have been started with.
+
+    The plant integrates `urdf`; the controller's model is `model_urdf` (or the plant's URDF); both
+    reduce their URDF to the joints of the one `motion` file, the others locked where it says.
+    """
+    motion = spec.motion or ''
+    return {'plant': {'urdf': spec.urdf or '', 'motion': motion},
+            spec.controller: {'urdf': spec.model_urdf or spec.urdf or '', 'motion': motion}}
+
+
+def same_read_only(name: str, given, wanted: str) -> bool:
+    """Whether a node's `urdf` or `motion` (a path; '' the default) names the same file as `wanted`."""
+    if not isinstance(given, str):
+        return False
+    if name == 'urdf':
+        return same_urdf(given or None, wanted or None)
+    if not given or not wanted:
+        return given == wanted
+    return Path(given).resolve() == Path(wanted).resolve()
 
 
 def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep') -> dict:
     """The parameters (as a node: ros__parameters: mapping) that make the plant and controller run `spec`.
 
     Per-joint options left out mean "none"; set through the parameter services, they are empty arrays.
+    Read-only parameters left at their default ('') are left out.
     """
     plant = {
         'mode': mode, 'period': spec.period, 'substeps': spec.substeps, 'command_timeout': COMMAND_TIMEOUT,
@@ -33,14 +61,15 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     # The in-process runner gives computed torque the plant's friction as its model F̂; so does this.
     controller.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')
                        if getattr(spec, name) is not None})
-    if spec.urdf:
-        plant['urdf'] = controller['urdf'] = spec.urdf
+    arms = arm_parameters(spec)
+    plant.update({name: value for name, value in arms['plant'].items() if value})
+    controller.update({name: value for name, value in arms[spec.controller].items() if value})
     return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
 
 
 def service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
     """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
-    parameters = [Parameter(name, value=value) for name, value in values.items() if name != 'urdf']
+    parameters = [Parameter(name, value=value) for name, value in values.items() if name not in READ_ONLY]
     parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
     return parameters
 
@@ -48,10 +77,11 @@ def service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
 PLANT_OPTIONAL = ('torque_limit', 'viscous_friction', 'coulomb_friction', 'external_torque', 'mass_scale')
 CONTROLLER_OPTIONAL = ('viscous_friction', 'coulomb_friction')
 
+
 def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
     """The configuration a bag carries, so that the bag alone says what was run."""
-    return {'spec': spec.to_dict(), 'joints': load_arm(spec.urdf).joint_names, 'k_max': plan.k_max,
+    return {'spec': spec.to_dict(), 'joints': list(plan.joint_names), 'prismatic': list(plan.prismatic),
+            'k_max': plan.k_max,
             'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
             'transport': transport, 'command': command,
             'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'))}
-

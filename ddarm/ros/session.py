@@ -18,7 +18,7 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.lifetime import child_environment
 from ddarm.ros.names import fully_qualified, namespace_arguments
-from ddarm.ros.node_parameters import COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, episode_record
+from ddarm.ros.node_parameters import COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, arm_parameters, episode_record
 from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
 from ddarm.episodes.engine import warm_up
 from ddarm.episodes.result import Episodes
@@ -41,7 +41,9 @@ class GraphSession:
     or a session and a user's graph, on one domain never hear each other. The node processes live
     as long as the session, so episodes cost no start-up, and no longer: they end when it closes
     and, should this process be killed, with it (`ddarm.ros.lifetime`). Switching controller
-    stops the other law's process, because two laws would answer the same states.
+    stops the other law's process, because two laws would answer the same states. A node is
+    built from its arm when it starts (the read-only `urdf` and `motion`): an episode of another
+    arm restarts it with that arm's.
     """
 
     def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
@@ -51,6 +53,7 @@ class GraphSession:
         self.timeout = timeout
         self.namespace = session_namespace()
         self.processes: dict[str, subprocess.Popen] = {}
+        self.arms: dict[str, dict] = {}  # per node process: the read-only parameters it was started with
         self.context = rclpy.Context()
         rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
         self.driver = GraphDriver(namespace=self.namespace, context=self.context)
@@ -60,29 +63,38 @@ class GraphSession:
             # The nodes run the compiled loop: built (or loaded from numba's cache) here first, so that
             # on a fresh checkout the node processes load it instead of compiling it past their peer timeout.
             warm_up()
-            self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
-                                                       'command_timeout': COMMAND_TIMEOUT})
         except BaseException:
             self.close()
             raise
 
-    def _start(self, name: str, module: list[str], parameters: dict) -> None:
+    def _start(self, name: str, module: list[str], parameters: dict, arm: dict) -> None:
         path = self.folder / f'{name}.parameters.yaml'
-        path.write_text(yaml.safe_dump({fully_qualified(name, self.namespace): {'ros__parameters': parameters}}))
-        with open(self.folder / f'{name}.log', 'w') as log:
+        given = {**parameters, **{key: value for key, value in arm.items() if value}}  # '': the node's default
+        path.write_text(yaml.safe_dump({fully_qualified(name, self.namespace): {'ros__parameters': given}}))
+        with open(self.folder / f'{name}.log', 'a') as log:  # appended: a node restarted for another arm
             # A session of its own: a Ctrl-C in the terminal reaches this process, which stops its nodes in order.
             self.processes[name] = subprocess.Popen(
                 [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
                  '--params-file', str(path)],
                 stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
+        self.arms[name] = dict(arm)
 
-    def use_controller(self, law: str, spec: EpisodeSpec) -> None:
-        """Start the `law` controller process (stopping the other law's) unless it runs already."""
+    def use_nodes(self, spec: EpisodeSpec) -> None:
+        """The plant and the `spec` law's controller running with the arm of `spec`: started (or restarted,
+        for another URDF or motion file) unless they run with it already; the other law's process stopped."""
+        law = spec.controller
         for other in CONTROLLERS:
             if other != law and other in self.processes:
                 self._stop(other)
+        arms = arm_parameters(spec)
+        for name in ('plant', law):
+            if name in self.processes and self.arms[name] != arms[name]:
+                self._stop(name)
+        if 'plant' not in self.processes:
+            self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
+                                                       'command_timeout': COMMAND_TIMEOUT}, arms['plant'])
         if law not in self.processes:
-            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)})
+            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)}, arms[law])
 
     def check_alive(self) -> None:
         for name, process in self.processes.items():
@@ -92,8 +104,8 @@ class GraphSession:
                                         f'code {process.returncode}:\n{tail}')
 
     def ready(self, spec: EpisodeSpec) -> None:
-        """The `spec` law's controller running and both nodes on the graph, alone."""
-        self.use_controller(spec.controller, spec)
+        """The plant and the `spec` law's controller running with its arm, and both on the graph, alone."""
+        self.use_nodes(spec)
         self.driver.wait_for_peers(self.executor, spec.controller, alive=self.check_alive)
 
     def open_bag(self, path: Path | str, spec: EpisodeSpec, plan: EpisodePlan, transport: str, storage: str,
@@ -104,7 +116,7 @@ class GraphSession:
 
     def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
             realtime: bool = False) -> Episodes:
-        self.use_controller(spec.controller, spec)
+        self.use_nodes(spec)
         return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
                                        self.timeout, alive=self.check_alive)
 
@@ -115,6 +127,7 @@ class GraphSession:
 
     def _stop(self, name: str) -> None:
         process = self.processes.pop(name)
+        self.arms.pop(name, None)
         if process.poll() is None:
             process.send_signal(subprocess.signal.SIGINT)
             try:
