@@ -204,7 +204,7 @@ def test_a_directory_given_as_urdf_is_named_a_directory(ros_context, tmp_path):
 def test_a_file_that_is_no_urdf_or_cannot_be_read_is_refused_naming_it(tmp_path):
     text = tmp_path / 'notes.urdf'
     text.write_text('not a robot\n')
-    with pytest.raises(ModelError, match=re.escape(f'URDF {text} is not a URDF the arm can be built from')):
+    with pytest.raises(ModelError, match=re.escape(f'URDF {text} is not readable XML')):
         Arm.from_urdf(text)
     # Even root cannot open a socket as a file.
     unopenable = tmp_path / 'arm.urdf'

@@ -2,14 +2,18 @@
 written YAML loads into the controller node."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
+import yaml
 
 from ddarm_control.node import ControllerNode
 from ddarm.recording.bags import score_bag
 from ddarm.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize('controller, index, method, delay', [
@@ -45,3 +49,35 @@ def test_a_budget_too_small_for_the_starts_is_refused(capsys, tmp_path):
                  '--runs', str(tmp_path)]) == 2
     assert 'budget' in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_tune_on_an_arm_of_the_user_writes_gains_by_joint_a_bag_and_a_report_page(capsys, tmp_path):
+    """The README's "Tuning your own arm": the Z1's URDF and motion (its gripper locked) to a controller YAML
+    keyed by joint, the bag that confirms it, and report.md with its figure."""
+    arm = ROOT / 'config' / 'arms' / 'z1'
+    assert main(['tune', '--urdf', str(arm / 'z1.urdf'), '--motion', str(arm / 'z1-motion.yaml'),
+                 '--controller', 'computed_torque', '--index', 'I', '--urdf-limits', '--duration', '0.5',
+                 '--budget', '120', '--omegas', '15', '--runs', str(tmp_path), '--run', 'z1',
+                 '--out', str(tmp_path / 'z1.yaml'), '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    joints = ['joint1', 'joint2', 'joint3', 'joint4', 'joint5', 'joint6']
+    assert report['joint_names'] == joints and list(report['gains']) == joints
+    assert [report['gains'][name]['p'] for name in joints] == report['kp']
+    assert report['agree'] and report['in_process']['I'] < report['start_indices'][0]
+    assert score_bag(report['bag'])['joint_names'] == joints
+    page = (tmp_path / 'z1' / 'report.md').read_text()
+    assert all(f'| {name} |' in page for name in joints) and '![' in page
+    assert (tmp_path / 'z1' / 'best-episode.png').stat().st_size > 10_000
+    written = yaml.safe_load((tmp_path / 'z1.yaml').read_text())['computed_torque']['ros__parameters']
+    assert written['gains'] == {name: {'p': report['gains'][name]['p'], 'd': report['gains'][name]['d']}
+                                for name in joints}
+    assert written['urdf'] == str(arm / 'z1.urdf') and written['motion'] == str(arm / 'z1-motion.yaml')
+    context = rclpy.Context()
+    rclpy.init(context=context, args=['--ros-args', '--params-file', str(tmp_path / 'z1.yaml')])
+    try:
+        node = ControllerNode('computed_torque', context=context)
+        np.testing.assert_allclose(node.controller.law.kp, report['kp'], rtol=1e-15)
+        assert node.joints == joints
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)

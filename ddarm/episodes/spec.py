@@ -111,24 +111,35 @@ def _read_motion(path: str, stamp: tuple[int, int]) -> MotionFile:
     return load_motion(path)
 
 
-def motion_file(spec: EpisodeSpec) -> MotionFile:
-    """The episode's motion file: the user's (read again when it changes on disk), or the paper's trajectory."""
-    if spec.motion is None:
-        return paper_motion_file(spec.trajectory)
+def read_motion_file(motion: str | None, trajectory: int = 1) -> MotionFile:
+    """A motion file (read again when it changes on disk), or with `motion` None the paper's `trajectory`."""
+    if motion is None:
+        return paper_motion_file(trajectory)
     try:
-        status = os.stat(spec.motion)
+        status = os.stat(motion)
     except OSError as error:
-        raise MotionError(f'motion file {spec.motion}: {error.strerror}') from error
-    return _read_motion(spec.motion, (status.st_mtime_ns, status.st_size))
+        raise MotionError(f'motion file {motion}: {error.strerror}') from error
+    return _read_motion(motion, (status.st_mtime_ns, status.st_size))
+
+
+def motion_of_duration(file: MotionFile, duration: float):
+    """q^d over an episode of T = `duration`: a bang-bang motion stretched to T, waypoints as they are (held after
+    their last point)."""
+    motion = file.motion
+    if isinstance(motion, ProgrammedMotion):
+        # Fresh arrays: a caller may change its copy.
+        return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
+    return motion
+
+
+def motion_file(spec: EpisodeSpec) -> MotionFile:
+    """The episode's motion file: the user's, or the paper's trajectory."""
+    return read_motion_file(spec.motion, spec.trajectory)
 
 
 def episode_motion(spec: EpisodeSpec):
-    """q^d of the episode: a bang-bang motion stretched to T, or the file's waypoints (held after their end)."""
-    motion = motion_file(spec).motion
-    if isinstance(motion, ProgrammedMotion):
-        # Fresh arrays: a caller may change its copy.
-        return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(spec.duration))
-    return motion
+    """q^d of the episode (`motion_of_duration` of its motion file at T)."""
+    return motion_of_duration(motion_file(spec), spec.duration)
 
 
 def arm_joints(spec: EpisodeSpec) -> tuple[tuple[str, ...], tuple[tuple[str, float], ...]]:

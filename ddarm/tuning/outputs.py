@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from ddarm.episodes.indices import INDICES
-from ddarm.episodes.spec import EpisodeSpec
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, arm_joints
 from ddarm.recording.bags import BagError, checked_output_path
 from ddarm.recording.runs import RunFolder, controller_yaml
+from ddarm.tuning.report import write_tuning_report
 
 # How far (relative) the bag's indices may differ from the in-process search's for the bag to confirm it.
 AGREEMENT = 1e-9
@@ -39,7 +40,8 @@ def run_folder(kind: str, controller: str, runs: str, run: str | None, command: 
 
 def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out: str | None = None) -> list[str]:
     """The controller YAML in the run folder, and at `out` if given (never overwriting)."""
-    text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance)
+    text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance,
+                           joint_names=arm_joints(spec)[0], urdf=spec.model_urdf or spec.urdf, motion=spec.motion)
     written = [str(run.write_text(f'{spec.controller}.yaml', text))]
     if out:
         checked_output_path(out).write_text(text)
@@ -47,14 +49,19 @@ def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out:
     return written
 
 
-def finish_omega(run: RunFolder, spec: EpisodeSpec, choice, out: str | None = None) -> dict:
+def finish_omega(run: RunFolder, spec: EpisodeSpec, plan: EpisodePlan, choice, out: str | None = None) -> dict:
     """Section 2's procedure done: its report in the run's summary, the gains written if an ω was chosen.
 
     Returns the report (the JSON of `ddarm omega`).
     """
     steps = [dataclasses.asdict(step) for step in choice.steps]
     report = {'omega_min': choice.omega_min,
-              'steady_state_error_at_omega_min_deg': np.degrees(choice.steady_state_error_at_min).tolist(),
+              # deg for revolute joints, mm for prismatic ones (the units of --max-error); SI beside them
+              'steady_state_error_at_omega_min_deg': np.where(
+                  np.array(plan.prismatic, dtype=bool), choice.steady_state_error_at_min * 1e3,
+                  np.degrees(choice.steady_state_error_at_min)).tolist(),
+              'steady_state_error_at_omega_min': choice.steady_state_error_at_min.tolist(),
+              'joint_names': list(plan.joint_names),
               'omega': choice.omega, 'kp': None if choice.kp is None else choice.kp.tolist(),
               'kv': None if choice.kv is None else choice.kv.tolist(),
               'indices': choice.steps[-2 if not choice.steps[-1].accepted else -1].indices
@@ -95,6 +102,10 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
         'episodes': tuning.search.episodes, 'batches': tuning.search.batches,
         'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
         'spec': best_spec.to_dict(), 'command': run.summary['command'],
+        'joint_names': scored['joint_names'],
+        'gains': {name: {'p': p, 'd': d} for name, p, d in zip(scored['joint_names'], tuning.search.kp.tolist(),
+                                                                tuning.search.kv.tolist())},
+        'saturated_joints': scored.get('saturated_joints', []), 'warnings': list(tuning.warnings),
     }
     if report['agree']:
         report['gains_files'] = write_gains(
@@ -102,6 +113,7 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
             f"{index} = {scored[index]!r} (scored from {scored['bag']})\nfrom: {report['command']}", out)
     else:
         report['gains_files'] = []
+    report['report'] = str(write_tuning_report(run, report))
     run.summary['tune'] = report
     run.finish('complete' if report['agree'] else 'in-process and bag indices disagree')
     report['run'] = str(run.path)

@@ -1,0 +1,105 @@
+"""The page a tuning leaves in its run folder: report.md and a figure of the best gains' recorded episode.
+
+Everything on it is read from the run's summary and the bag the gains were scored from, so the
+page shows the evidence itself, not the search's own view of it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ddarm.episodes.indices import INDICES
+from ddarm.recording.bags import bag_result, read_episode_bag
+from ddarm.recording.runs import RunFolder
+
+DPI = 110
+FIGURE_NAME = 'best-episode.png'
+
+
+def episode_figure(path: Path, bag_path: Path | str, title: str) -> None:
+    """Per joint: q^d and q, the error, and the applied against the nominal torque (and its limit), from the bag."""
+    episode = bag_result(read_episode_bag(bag_path))
+    plan, joints = episode.plan, episode.joint_names
+    prismatic = plan.prismatic or (False,) * len(joints)
+    count = int(episode.samples_scored[0])
+    times, q, torque = plan.times[:count], episode.scored('q'), episode.scored('torque')
+    limit = episode.torque_limit()
+    figure = Figure(figsize=(12, 2.3 * len(joints) + 0.8), dpi=DPI)
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(len(joints), 3, sharex=True, squeeze=False)
+    for j, joint in enumerate(joints):
+        # Angles in degrees, lengths in mm: the units an engineer reads off a robot's pendant.
+        scale, unit, effort = (1e3, 'mm', 'N') if prismatic[j] else (np.degrees(1.0), 'deg', 'N m')
+        axes[j, 0].plot(plan.times, plan.q_ref[:, j] * scale, 'k--', linewidth=1.0, label='$q^d$')
+        axes[j, 0].plot(times, q[:, j] * scale, color='tab:red', label='$q$')
+        axes[j, 0].set_ylabel(f'{joint}\nposition ({unit})')
+        axes[j, 1].plot(times, (plan.q_ref[:count, j] - q[:, j]) * scale, color='tab:red')
+        axes[j, 1].axhline(0.0, color='0.6', linewidth=0.8)
+        axes[j, 1].set_ylabel(f'error ({unit})')
+        edges = np.append(times, count * (plan.times[1] - plan.times[0]))
+        axes[j, 2].step(edges, np.append(torque[:, j], torque[-1, j]), where='post', color='tab:red', label='$P$')
+        axes[j, 2].plot(plan.times, plan.nominal[:, j], 'k--', linewidth=1.0, label='$P^{nom}$')
+        label = f'torque ({effort})'
+        if limit is not None:
+            largest = max(np.max(np.abs(torque[:, j])), np.max(np.abs(plan.nominal[:, j])))
+            if limit[j] < 1.5 * largest:  # a limit far off the torques would squash them flat
+                for sign in (-1, 1):
+                    axes[j, 2].axhline(sign * limit[j], color='tab:orange', linewidth=0.8, linestyle=':')
+            else:
+                label += f'\nlimit ±{limit[j]:.3g}'
+        axes[j, 2].set_ylabel(label)
+        for axis in axes[j]:
+            axis.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    axes[0, 2].legend(fontsize=8)
+    axes[0, 0].set_title('position')
+    axes[0, 1].set_title('tracking error $e = q^d - q$')
+    axes[0, 2].set_title('applied torque (held over each period)')
+    for axis in axes[-1]:
+        axis.set_xlabel('time t (s)')
+    figure.suptitle(title)
+    figure.tight_layout(rect=(0, 0, 1, 0.97))
+    figure.savefig(path)
+
+
+def _row(values) -> str:
+    return '| ' + ' | '.join(values) + ' |'
+
+
+def write_tuning_report(run: RunFolder, report: dict) -> Path:
+    """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence."""
+    spec = report['spec']
+    joints = report['joint_names']
+    motion = spec['motion'] or f"the paper's trajectory {spec['trajectory']}"
+    title = (f"{report['controller']} on {Path(spec['urdf']).name if spec['urdf'] else 'the paper arm'}, "
+             f"{Path(motion).name}: {report['index']} minimised")
+    figure = run.path / FIGURE_NAME
+    episode_figure(figure, report['bag'], title)
+    lines = [f'# {title}', '', f"Command: `{report['command']}`", '',
+             f"- plant URDF: `{spec['urdf'] or 'config/ddarm.urdf'}`"
+             + (f"; controller model: `{spec['model_urdf']}`" if spec['model_urdf'] else ''),
+             f'- motion: `{motion}`, T = {spec["duration"]:g} s, Δ = {spec["period"]:g} s, compute delay d = '
+             f'{spec["delay"]}, τ = {spec["tau"]:g} s, torque limit {spec["torque_limit"]}',
+             f"- search: {report['method']}, {report['episodes']} episodes in {report['wall_time_s']:.2f} s "
+             f"({report['episodes_per_s']:.0f} episodes/s), best {report['index']} = {report['search_index']:.9g}",
+             '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
+    lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, report['kp'], report['kv'])]
+    lines += ['', '## Evidence', '', _row(['', *INDICES]), _row(['---'] * (len(INDICES) + 1)),
+              _row(['in-process', *(f"{report['in_process'][k]:.9g}" for k in INDICES)]),
+              _row(['from the bag', *(f"{report['from_bag'][k]:.9g}" for k in INDICES)]), '',
+              f"Largest relative difference {report['max_rel_difference']:.2e}: "
+              + ('the bag confirms the search.' if report['agree'] else
+                 '**the bag does not confirm the search: no gains were written.**'),
+              f"Bag: `{report['bag']}`"]
+    if report.get('saturated_joints'):
+        lines.append(f"At their torque limit in the recorded episode: {', '.join(report['saturated_joints'])}.")
+    for warning in report.get('warnings', []):
+        lines.append(f'- WARNING: {warning}')
+    if report['gains_files']:
+        lines += ['', 'Controller YAML: ' + ', '.join(f'`{name}`' for name in report['gains_files'])]
+    lines += ['', f'![the best gains\' recorded episode]({FIGURE_NAME})', '']
+    return run.write_text('report.md', '\n'.join(lines))
