@@ -30,7 +30,7 @@ def throughput(sizes, threads) -> dict:
     """Batch episodes/s of the reference case at each B (the best of three calls)."""
     rates = {}
     for size in sizes:
-        kp, kv = perturbed_gains(size, seed=1)
+        kp, kv = perturbed_gains(REFERENCE, size, seed=1)
         best = np.inf
         for _ in range(3):
             started = time.perf_counter()
@@ -59,7 +59,7 @@ def pinocchio_pool_stage(size: int = 1000, calls: int = 200) -> dict:
 
 def memory(batches: int, size: int = 1000) -> dict:
     """Peak RSS after one batch of `size` and after `batches` more: flat if the engine keeps nothing."""
-    kp, kv = perturbed_gains(size, seed=2)
+    kp, kv = perturbed_gains(REFERENCE, size, seed=2)
     simulate_batch(REFERENCE, kp, kv)
     before = peak_rss_mib()
     started = time.perf_counter()
