@@ -32,7 +32,7 @@ from ddarm.control.gains import gains_from_parameters
 from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
 from ddarm.errors import DdarmError
-from ddarm.motion.files import MotionFile, load_motion
+from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import MotionError, nominal_torque
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
@@ -76,16 +76,19 @@ def checked_choice(name: str, value: str, choices: tuple[str, ...]) -> str:
     return value
 
 
-def motion_reference(model: Arm, file: MotionFile, period: float) -> Reference:
+def motion_reference(model: Arm, file: MotionFile, period: float, duration: float = 0.0) -> Reference:
     """The motion file's q^d, q̇^d, q̈^d (and P^nom) at t_j = j Δ from j = 0 to the first sample at or after T;
-    `Reference.point` holds the goal after it. T need not be a whole number of periods (a waypoint's time)."""
-    last = math.ceil(file.motion.duration / period - 1e-9)
+    `Reference.point` holds the goal after it. T need not be a whole number of periods (a waypoint's time).
+    `duration` > 0 is the episode's T the gains were tuned for (a bang-bang motion stretched to it, as every
+    episode stretches it: ddarm.episodes.spec.motion_of_duration); 0: the file's own."""
+    motion = motion_of_duration(file, duration or file.motion.duration)
+    last = math.ceil(max(duration, motion.duration) / period - 1e-9)
     if last + 1 > MAX_REFERENCE_POINTS:
         raise MotionError(f'the motion of {last + 1} samples of {period} s is more than the '
                           f'{MAX_REFERENCE_POINTS} allowed')
     times = np.arange(last + 1) * period  # each a product, never a running sum
-    q, v, a = file.motion.sample(times)
-    return Reference(times, q, v, a, nominal_torque(model, file.motion, times))
+    q, v, a = motion.sample(times)
+    return Reference(times, q, v, a, nominal_torque(model, motion, times))
 
 
 class ControllerNode(Node):
@@ -132,7 +135,8 @@ class ControllerNode(Node):
         warm_up(self.chain)
         self.gains_ready = gains is not None
         if self.sampling == 'timer':
-            self._set_reference(motion_reference(self.model, self.motion_file, self.period))
+            self._set_reference(motion_reference(self.model, self.motion_file, self.period,
+                                                 self.get_parameter('duration').value))
         # Counts every change of what the commands are computed from (parameters, reference, reset), so a
         # driver can tell whether anyone touched the controller while an episode ran.
         self.configuration = 0
@@ -182,6 +186,9 @@ class ControllerNode(Node):
                                       'at its locked positions), and in timer mode its motion is the reference '
                                       '("" = every joint of the URDF, the reference from /reference)',
                                       read_only=True)),
+            ('duration', 0.0, descriptor('timer mode: T of the motion in s, as the gains were tuned (a bang-bang '
+                                         'motion is stretched to it); 0 = the motion file\'s own',
+                                         floating=(0.0, 3600.0), read_only=True)),
             ('joints', Parameter.Type.STRING_ARRAY, descriptor('joint names in URDF order, the order of kp and kv '
                                                                '(unset: from the motion file, else the URDF)',
                                                                read_only=True)),

@@ -17,7 +17,8 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from ddarm.episodes.spec import motion_of_duration, read_motion_file
+from ddarm.episodes.spec import read_motion_file
+from ddarm.motion.files import motion_of_duration
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
@@ -103,7 +104,7 @@ def start_state(values: dict, arm: Arm, reduced_by: Reduction | None) -> tuple[n
                 raise PlantError(f'the file now controls joints {list(joints)} and locks {dict(locked)}; the plant '
                                  f'started with joints {list(reduced_by[0])}, locked {dict(reduced_by[1])}: '
                                  'restart the plant to run it')
-        motion = motion_of_duration(file, values['duration'])
+        motion = motion_of_duration(file, values['duration'] or file.motion.duration)
         if motion.dof != dof:
             raise PlantError(f'trajectory {trajectory} has {motion.dof} joints, the URDF {dof}')
         return disturbed_start(motion, values['tau'])
@@ -206,8 +207,9 @@ class PlantNode(Node):
             ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} '
                                          '(of `motion`, when set, whatever the number); 0: '
                                          'initial_position/velocity', integer=(0, max(PAPER_TRAJECTORIES)))),
-            ('duration', 1.0, descriptor('T of the programmed motion in s (for the start state; a bang-bang '
-                                         'motion is stretched to it)', floating=(1e-3, 3600.0))),
+            ('duration', 0.0, descriptor('T of the programmed motion in s (for the start state; a bang-bang '
+                                         'motion is stretched to it); 0 = the motion\'s own (the paper\'s: 1 s)',
+                                         floating=(0.0, 3600.0))),
             ('tau', 0.0, descriptor('initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s',
                                     floating=(0.0, 3600.0))),
             ('initial_position', double_array, descriptor('start position when trajectory = 0')),

@@ -1035,3 +1035,40 @@ def test_a_urdf_changed_on_disk_is_read_again(tmp_path):
     np.testing.assert_allclose(after[5], expected.rnea(*bang_bang(motion['start'], motion['goal'], 0.3, 0.05)),
                                rtol=1e-12)
     assert np.max(np.abs(after - before)) > 1.0
+
+
+def test_the_paper_motion_on_another_arm_is_refused_naming_its_joints(capsys):
+    assert main(['episode', '--urdf', str(urdf_of('z1')), '--controller', 'computed_torque', '--omega', '15']) == 2
+    error = capsys.readouterr().err.strip()
+    assert "give a motion file (--motion) for its joints ['joint1'" in error and "'jointGripper'" in error
+    assert len(error.splitlines()) == 1
+
+
+def test_an_episode_shorter_than_its_waypoints_is_refused(tmp_path, capsys):
+    path = tmp_path / 'waypoints.yaml'
+    path.write_text('joint_names: [joint1, joint2]\nstart: [0.0, 0.0]\npoints:\n'
+                    '  - {positions: [0.4, -0.2], velocities: [0.5, 0.0], time_from_start: 0.5}\n'
+                    '  - {positions: [0.8, 0.1], velocities: [0.0, 0.0], time_from_start: 1.0}\n')
+    arguments = ['episode', '--motion', str(path), '--controller', 'computed_torque', '--omega', '15', '--json']
+    assert main([*arguments, '--duration', '0.6']) == 2
+    assert 'T = 0.6 s ends before its last point at 1.0 s' in capsys.readouterr().err
+    assert main([*arguments, '--duration', '1.5']) == 0
+    assert json.loads(capsys.readouterr().out)['locked_joints'] == {'joint3': 0.0}
+
+
+def test_a_motion_that_moves_at_t0_starts_the_arm_at_rest_and_tau_sets_the_velocity_error(tmp_path):
+    """(3.1) as e(0) = 0, ė(0) = q̇^d(τ) (spec §16): positions-only waypoints move from t = 0 (a linear segment),
+    yet the arm starts at rest at τ = 0; for a bang-bang motion it is q̇(0) = -q̇^d(τ) exactly."""
+    path = tmp_path / 'linear.yaml'
+    path.write_text('joint_names: [joint1, joint2, joint3]\npoints:\n'
+                    '  - {positions: [0.0, 1.0, -2.0], time_from_start: 0.0}\n'
+                    '  - {positions: [0.5, 0.8, -1.5], time_from_start: 1.0}\n')
+    for tau in (0.0, 0.3):
+        plan = plan_episode(EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3,
+                                        motion=str(path), tau=tau))
+        moving = np.array([0.5, -0.2, 0.5])  # the linear segment's velocity, at 0 and at τ alike
+        np.testing.assert_allclose(plan.v_ref[0], moving, rtol=1e-12)
+        np.testing.assert_allclose(plan.v0, moving - moving, atol=0.0)
+    bang_bang = plan_episode(EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, tau=0.1))
+    _, at_tau, _ = bang_bang.motion.sample(0.1)
+    np.testing.assert_array_equal(bang_bang.v0, -at_tau)

@@ -256,3 +256,26 @@ def test_a_change_in_the_other_form_converts_the_gains_to_it(keyed_node):
     assert node.controller.law.kp.tolist() == [1.0, 22.0, 3.0]
     with pytest.raises(ParameterNotDeclaredException, match="gains for joint 'wrist'"):
         node.set_parameters([Parameter('gains.wrist.p', value=1.0)])
+
+
+def test_a_yaml_tuned_over_another_T_runs_its_motion_over_that_T_in_timer_mode():
+    """`ddarm tune --duration 0.5` on a 1 s bang-bang file: the YAML says T, and the timer-mode reference is the
+    motion stretched to it, as the episodes the gains were tuned on."""
+    import numpy as np
+
+    from ddarm.motion.files import load_motion
+    from ddarm.physics.arm import load_arm
+    from ddarm_control.node import motion_reference
+
+    root = Path(__file__).resolve().parents[1] / 'config' / 'arms' / 'z1'
+    text = controller_yaml('computed_torque', [225.0] * 6, [30.0] * 6, 1, 0.01, 'test',
+                           joint_names=[f'joint{i}' for i in range(1, 7)], urdf=root / 'z1.urdf',
+                           motion=root / 'z1-motion.yaml', duration=0.5)
+    assert yaml.safe_load(text)['computed_torque']['ros__parameters']['duration'] == 0.5
+    file = load_motion(root / 'z1-motion.yaml')
+    model = load_arm(str(root / 'z1.urdf'), None, file.joint_names, file.locked)
+    reference = motion_reference(model, file, 0.01, 0.5)
+    assert len(reference.times) == 51
+    np.testing.assert_allclose(reference.q[25], (file.motion.q0 + file.motion.qf) / 2, rtol=1e-12)
+    np.testing.assert_array_equal(reference.q[-1], file.motion.qf)
+    assert len(motion_reference(model, file, 0.01).times) == 101  # 0: the file's own T

@@ -10,7 +10,7 @@ import time
 from ddarm.cli.arguments import episode_spec
 from ddarm.cli.output import print_summary
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, check_episode
+from ddarm.episodes.spec import EpisodeError, check_episode, model_arm
 
 
 def command_episode(args: argparse.Namespace) -> int:
@@ -31,7 +31,7 @@ def command_episode(args: argparse.Namespace) -> int:
     else:
         result = run_episode(spec)
         transport = 'in-process'
-    summary = {**result.summary(), 'transport': transport, 'wall_time_s': time.perf_counter() - started,
+    summary = {**result.summary(), 'locked_joints': dict(model_arm(spec).locked), 'transport': transport, 'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}
     if args.json:
         print(json.dumps(summary))

@@ -16,7 +16,9 @@ def print_summary(summary: dict) -> None:
     if spec.get('urdf') or spec.get('model_urdf'):
         print(f"  arm {spec.get('urdf') or 'config/ddarm.urdf'}"
               + (f"  model {spec['model_urdf']}" if spec.get('model_urdf') else ''))
-    print(f"  joints {', '.join(summary.get('joint_names', []))}")
+    print(f"  joints {', '.join(summary.get('joint_names', []))}"
+          + (f"; locked {', '.join(f'{name} = {value:g}' for name, value in summary['locked_joints'].items())}"
+             if summary.get('locked_joints') else ''))
     print(f"  kp = {format_vector(spec['kp'])}  kv = {format_vector(spec['kv'])}")
     print(f"  I1 (2.5) = {summary['I1']:.6g}   I2 = {summary['I2']:.6g}   I (3.2) = {summary['I']:.6g}")
     if summary['diverged']:

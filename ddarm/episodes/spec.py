@@ -12,10 +12,10 @@ import numpy as np
 from ddarm.control.gains import omega_rule_gains
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay, checked_gains
 from ddarm.errors import DdarmError
-from ddarm.motion.files import MotionFile, load_motion
+from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
                                      paper_motion_file, paper_torque_limit, sample_count, sample_times)
-from ddarm.physics.arm import Arm, ModelError, load_arm
+from ddarm.physics.arm import MOVABLE, Arm, ModelError, load_arm, urdf_joints
 from ddarm.physics.dynamics import Chain, load_chain
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 
@@ -122,16 +122,6 @@ def read_motion_file(motion: str | None, trajectory: int = 1) -> MotionFile:
     return _read_motion(motion, (status.st_mtime_ns, status.st_size))
 
 
-def motion_of_duration(file: MotionFile, duration: float):
-    """q^d over an episode of T = `duration`: a bang-bang motion stretched to T, waypoints as they are (held after
-    their last point)."""
-    motion = file.motion
-    if isinstance(motion, ProgrammedMotion):
-        # Fresh arrays: a caller may change its copy.
-        return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
-    return motion
-
-
 def motion_file(spec: EpisodeSpec) -> MotionFile:
     """The episode's motion file: the user's, or the paper's trajectory."""
     return read_motion_file(spec.motion, spec.trajectory)
@@ -151,6 +141,12 @@ def arm_joints(spec: EpisodeSpec) -> tuple[tuple[str, ...], tuple[tuple[str, flo
 def _reduced(load, urdf: str | None, spec: EpisodeSpec, *arguments):
     joints, locked = arm_joints(spec)
     try:
+        if spec.motion is None and urdf is not None:
+            # The paper's motion names the paper arm's joints: on another arm it would lock the rest at 0 unasked.
+            movable = [joint.name for joint in urdf_joints(Path(urdf)).values() if joint.kind in MOVABLE]
+            if sorted(movable) != sorted(joints):
+                raise EpisodeError(f'URDF {urdf}: give a motion file (--motion) for its joints {movable}; the '
+                                   f"paper's trajectory {spec.trajectory} drives the paper arm's {list(joints)}")
         return load(urdf, *arguments, joints, locked)
     except ModelError as error:
         raise EpisodeError(f'{error} (motion {spec.motion or f"trajectory {spec.trajectory}"})') from error
@@ -194,6 +190,10 @@ def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
                                f'{kinds[bool(model_kind)]} in the model URDF {model.urdf_path}')
     if motion.dof != model.dof:
         raise EpisodeError(f'the programmed motion has {motion.dof} joints, the URDF {model.dof}')
+    if times[-1] < motion.duration * (1 - 1e-9):
+        raise EpisodeError(f'motion {spec.motion}: T = {spec.duration!r} s ends before its last point at '
+                           f'{motion.duration!r} s: the arm would never be sent to the goal (give --duration of at '
+                           'least that, or none)')
     q_ref, v_ref, a_ref = motion.sample(times)
     warnings = motion_limit_warnings(plant, motion, spec)
     try:

@@ -295,3 +295,13 @@ def _positions(source: str, field: str, values, joints: int, what: str = 'positi
         raise MotionError(f'{source}: {field} must list one {what} per joint of joint_names ({joints}), '
                           f'got {_shown(values)}')
     return np.array([_number(source, f'{field}[{i}]', value) for i, value in enumerate(values)])
+
+
+def motion_of_duration(file: MotionFile, duration: float):
+    """q^d over an episode of T = `duration`: a bang-bang motion stretched to T, waypoints as they are (held after
+    their last point)."""
+    motion = file.motion
+    if isinstance(motion, ProgrammedMotion):
+        # Fresh arrays: a caller may change its copy.
+        return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
+    return motion

@@ -95,6 +95,8 @@ def sample_count(duration: float, period: float) -> int:
     """k_max = T / Δ of (2.5); T must be a whole number of sampling periods."""
     if not (np.isfinite(period) and period > 0):
         raise MotionError(f'sampling period must be finite and positive, got {period!r}')
+    if not (np.isfinite(duration) and duration > 0):
+        raise MotionError(f'duration T must be finite and positive, got {duration!r} s')
     ratio = duration / period
     k_max = int(round(ratio))
     if k_max < 1 or abs(ratio - k_max) > 1e-9 * max(1.0, ratio):
@@ -120,10 +122,15 @@ def checked_tau(tau, duration: float) -> np.ndarray:
 
 
 def disturbed_start(motion: ProgrammedMotion, tau) -> tuple[np.ndarray, np.ndarray]:
-    """(3.1) with spec §7's sign: q(0) = q^d(0) and q̇(0) = -q̇^d(τ), against the motion; for τ of shape (B,),
-    q̇(0) has shape (B, n)."""
+    """(3.1) with spec §7's sign: q(0) = q^d(0) and q̇(0) = q̇^d(0) - q̇^d(τ), so that e(0) = 0 and ė(0) = q̇^d(τ),
+    against the motion; for τ of shape (B,), q̇(0) has shape (B, n).
+
+    The paper's motions start at rest (q̇^d(0) = 0): q̇(0) = -q̇^d(τ) as (3.1) writes it. A waypoint motion may
+    not (a linear first segment): with τ = 0 its arm still starts at rest, as a robot does (spec §16).
+    """
+    _, v_at_start, _ = motion.sample(0.0)
     _, v_at_tau, _ = motion.sample(checked_tau(tau, motion.duration))
-    return np.array(motion.q0, dtype=float), -v_at_tau
+    return np.array(motion.q0, dtype=float), v_at_start - v_at_tau
 
 
 def nominal_torque(arm: Arm, motion: ProgrammedMotion, times: np.ndarray) -> np.ndarray:

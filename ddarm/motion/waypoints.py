@@ -16,7 +16,9 @@ that starts there (the JTC's `t0 <= t < t1`), which gives that point's q and q̇
 
 With a `start` (q at t = 0, at rest) before a first point at t_0 > 0, the first segment runs from the start
 with zero velocity and acceleration, the JTC's segment from the state it holds when a trajectory arrives
-(Trajectory::set_point_before_trajectory_msg): its type follows the first point's fields. Before t = 0 the motion
+(Trajectory::set_point_before_trajectory_msg): its type follows the first point's fields. (A JTC clears that
+state's velocities or accelerations when the hardware has no such state interface, which makes the segment
+linear or cubic there: the same q^d as ddarm's only on hardware that reports them.) Before t = 0 the motion
 is at q0, after its last point it holds that point's positions, at rest.
 """
 

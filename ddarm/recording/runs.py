@@ -18,14 +18,16 @@ DEFAULT_ROOT = Path('runs')
 
 
 def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenance: str, *,
-                    joint_names, urdf: str | Path | None = None, motion: str | Path | None = None) -> str:
+                    joint_names, urdf: str | Path | None = None, motion: str | Path | None = None,
+                    duration: float | None = None) -> str:
     """A parameter file that `ros2 run ddarm_control <controller> --ros-args --params-file` loads as it is.
 
     The gains are keyed by joint name, as ros2_controllers write them (`gains: {<joint>: {p: K_p, d: K_v}}`,
     which ROS 2 reads as the parameters gains.<joint>.p and .d); `joint_names` are the controller's joints
     in the order of kp and kv. `urdf` (the controller's model) and `motion` (its joints and, with
     sampling:=timer, its reference) are written when given, as absolute paths, so the file is all the
-    robot's controller node needs.
+    robot's controller node needs; with a motion, `duration` is the T the gains were tuned for (timer mode
+    runs the motion over it).
     """
     names = list(joint_names)
     if not names or not all(isinstance(name, str) and name for name in names) or len(set(names)) != len(names):
@@ -36,6 +38,8 @@ def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenan
     for name, value in (('urdf', urdf), ('motion', motion)):
         if value:
             parameters[name] = str(Path(value).resolve())
+    if motion and duration is not None:
+        parameters['duration'] = float(duration)
     parameters.update({
         'gains': {name: {'p': float(p), 'd': float(d)} for name, p, d in zip(names, kp, kv)}, 'omega': 0.0,
         'compute_delay_steps': int(delay), 'period': float(period)})
