@@ -78,6 +78,29 @@ def test_an_arm_of_any_urdf_and_motion_runs_through_the_graph_like_in_process(se
     assert scored['spec']['urdf'] == spec.urdf and scored['spec']['motion'] == spec.motion
 
 
+def test_a_waypoint_motion_on_the_z1_runs_through_the_graph_like_in_process(session, tmp_path):
+    """JointTrajectory-shaped waypoints (mixed segment types: cubic, quintic, linear), the Z1's gripper locked."""
+    motion = tmp_path / 'z1-waypoints.yaml'
+    motion.write_text(
+        'joint_names: [joint1, joint2, joint3, joint4, joint5, joint6]\n'
+        'start: [-0.5, 2.1, -1.5, 0.97, 0.0, 0.3]\n'
+        'points:\n'
+        '  - {positions: [-0.3, 2.0, -1.4, 0.9, 0.1, 0.1], velocities: [0.6, -0.3, 0.3, -0.2, 0.3, -0.6],\n'
+        '     time_from_start: 0.15}\n'
+        '  - {positions: [0.0, 1.85, -1.25, 0.85, 0.2, -0.2], velocities: [0.8, -0.3, 0.3, -0.1, 0.2, -0.8],\n'
+        '     accelerations: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], time_from_start: 0.3}\n'
+        '  - {positions: [0.5, 1.7, -1.1, 0.77, 0.3, -0.5], time_from_start: {sec: 0, nanosec: 500000000}}\n'
+        'locked: {jointGripper: -0.2}\n')
+    template = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 6, kv=(1.0,) * 6, urdf=str(ARMS / 'z1' / 'z1.urdf'),
+                           motion=str(motion), tau=0.1, torque_limit='urdf')
+    kp, kv = gains_from_omega(template, OMEGA)
+    spec = replace(template, kp=tuple(kp), kv=tuple(kv))
+    graph, scored = session.record_and_score(spec, tmp_path / 'bag')
+    reference = run_episode(spec)
+    assert spec.duration == 0.5 and len(graph.plan.joint_names) == 6
+    assert_same_episode(graph, reference, scored)
+
+
 def test_a_plant_other_than_the_controllers_model_runs_through_the_graph_like_in_process(session, tmp_path):
     urdf, _, _ = ARM_FILES['ur5']
     heavier = tmp_path / 'ur5-heavier-forearm.urdf'

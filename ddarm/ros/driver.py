@@ -222,13 +222,13 @@ class GraphDriver(Node):
             if not foreign and not missing:
                 now = time.monotonic()
                 settled_at = settled_at or now + (0.0 if self._graph_settled else DISCOVERY_SETTLE)
-                if now >= settled_at:
+                if now >= min(settled_at, deadline):  # settling is caution: never a refusal of a ready graph
                     self._graph_settled = True
                     return
             else:
                 settled_at = None
-            if time.monotonic() > deadline:
-                raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
+                if time.monotonic() > deadline:
+                    raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
             if not self.context.ok():
                 raise ExternalShutdownException('shut down while waiting for the plant and controller')
             alive()
