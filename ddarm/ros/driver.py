@@ -65,6 +65,16 @@ FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicat
                     'realtime': ('refused_commands', 'duplicate_commands')}
 
 
+def spin_once(executor, timeout: float) -> None:
+    """executor.spin_once, a stop by signal kept a stop: Interrupted raised inside rclpy's C++ (a message being
+    built) comes out as a SystemError of its own, which check_stop turns back into the stop it was."""
+    try:
+        executor.spin_once(timeout_sec=timeout)
+    except Exception:
+        check_stop()
+        raise
+
+
 class GraphEpisodeError(DdarmError, RuntimeError):
     """An episode over ROS that did not complete; the text says which sample and why."""
 
@@ -232,7 +242,7 @@ class GraphDriver(Node):
             if not self.context.ok():
                 raise ExternalShutdownException('shut down while waiting for the plant and controller')
             alive()
-            executor.spin_once(timeout_sec=0.05)
+            spin_once(executor, 0.05)
 
     def _watch_graph(self, law: str) -> None:
         """While an episode runs: a foreign publisher or duplicate node fails it at once, a lost peer after a grace."""
@@ -383,7 +393,7 @@ class GraphDriver(Node):
                 heard = f' ({self.recording.heard()})' if self.recording is not None else ''
                 raise GraphEpisodeError(f'timed out waiting for {what}{heard}')
             alive()
-            executor.spin_once(timeout_sec=0.05)
+            spin_once(executor, 0.05)
 
     def _trigger(self, executor, client, deadline: float, alive):
         """Call a std_srvs/Trigger service (a node's reset or status) and wait for its reply."""
@@ -466,7 +476,7 @@ class GraphDriver(Node):
                                                  watching).message)
                 if all(state[key] == value for key, value in expected.items()):
                     break
-                executor.spin_once(timeout_sec=0.01)
+                spin_once(executor, 0.01)
             configuration = state['configuration']
             self._check_started_with(spec.controller, controller_parameters, state['parameters'])
             self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
