@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 from dataclasses import asdict, dataclass
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
@@ -15,7 +14,7 @@ from ddarm.errors import DdarmError
 from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
                                      paper_motion_file, paper_torque_limit, sample_count, sample_times)
-from ddarm.physics.arm import MOVABLE, Arm, ModelError, load_arm, urdf_joints
+from ddarm.physics.arm import Arm, ModelError, load_arm, movable_joints
 from ddarm.physics.dynamics import Chain, load_chain
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 
@@ -138,18 +137,23 @@ def arm_joints(spec: EpisodeSpec) -> tuple[tuple[str, ...], tuple[tuple[str, flo
     return motion.joint_names, motion.locked
 
 
+def motion_source(spec: EpisodeSpec) -> str:
+    """The episode's motion as messages name it: its file, or the paper's trajectory."""
+    return spec.motion or f'trajectory {spec.trajectory}'
+
+
 def _reduced(load, urdf: str | None, spec: EpisodeSpec, *arguments):
     joints, locked = arm_joints(spec)
     try:
         if spec.motion is None and urdf is not None:
             # The paper's motion names the paper arm's joints: on another arm it would lock the rest at 0 unasked.
-            movable = [joint.name for joint in urdf_joints(Path(urdf)).values() if joint.kind in MOVABLE]
+            movable = movable_joints(urdf)
             if sorted(movable) != sorted(joints):
-                raise EpisodeError(f'URDF {urdf}: give a motion file (--motion) for its joints {movable}; the '
-                                   f"paper's trajectory {spec.trajectory} drives the paper arm's {list(joints)}")
+                raise EpisodeError(f'URDF {urdf}: give a motion file (--motion) for its joints {list(movable)}; '
+                                   f"the paper's trajectory {spec.trajectory} drives the paper arm's {list(joints)}")
         return load(urdf, *arguments, joints, locked)
     except ModelError as error:
-        raise EpisodeError(f'{error} (motion {spec.motion or f"trajectory {spec.trajectory}"})') from error
+        raise EpisodeError(f'{error} (motion {motion_source(spec)})') from error
 
 
 def model_arm(spec: EpisodeSpec) -> Arm:
@@ -202,7 +206,7 @@ def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
     except ModelError as error:
         raise EpisodeError(str(error)) from error
     nominal = nominal_torque(model, motion, times)
-    source = spec.motion or f'trajectory {spec.trajectory}'
+    source = motion_source(spec)
     for name, largest in zip(model.joint_names, np.max(np.abs(nominal), axis=0)):
         if not largest > 0:
             raise EpisodeError(f'motion {source}: joint {name!r} neither moves nor carries gravity along the motion '
@@ -239,7 +243,7 @@ def motion_limit_warnings(arm: Arm, motion, spec: EpisodeSpec) -> list[str]:
     """Refuse a motion whose start, goal or waypoints lie outside the URDF's position limits, or whose q^d leaves
     the plant's divergence bound (spec §12); warn (naming the joint) where q^d between them leaves the position
     limits or q̇^d exceeds the velocity limits."""
-    source = spec.motion or f'trajectory {spec.trajectory}'
+    source = motion_source(spec)
     knots = [('start', motion.q0), ('goal', motion.qf)]
     knots += [(f'point {i}', positions) for i, positions in enumerate(getattr(motion, 'positions', ()))]
     for label, positions in knots:

@@ -350,6 +350,17 @@ def urdf_stamp(urdf: str | None) -> tuple:
     return status.st_mtime_ns, status.st_size
 
 
+def movable_joints(urdf: str) -> tuple[str, ...]:
+    """The URDF's movable joints, in file order, read once per version of the file."""
+    return _movable_joints(urdf, urdf_stamp(urdf))
+
+
+@lru_cache(maxsize=16)
+def _movable_joints(urdf, stamp) -> tuple[str, ...]:
+    _check_readable(Path(urdf))
+    return tuple(joint.name for joint in urdf_joints(Path(urdf)).values() if joint.kind in MOVABLE)
+
+
 def load_arm(urdf: str | None, mass_scale: tuple[float, ...] | None = None, joints: tuple[str, ...] | None = None,
              locked: tuple[tuple[str, float], ...] = ()) -> Arm:
     """The arm from a URDF, loaded once per process and version of the file (Arm holds scratch space: one thread
