@@ -31,7 +31,8 @@ def command_episode(args: argparse.Namespace) -> int:
     else:
         result = run_episode(spec)
         transport = 'in-process'
-    summary = {**result.summary(), 'locked_joints': dict(model_arm(spec).locked), 'transport': transport, 'wall_time_s': time.perf_counter() - started,
+    summary = {**result.summary(), 'locked_joints': dict(model_arm(spec).locked), 'transport': transport,
+               'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}
     if args.json:
         print(json.dumps(summary))
