@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
 
 REFUSED = 2  # the exit code of a node that refused to start
+SIGNAL_CHECK_PERIOD_S = 0.2  # the longest a spinning node waits in rcl before it sees a pending Ctrl-C
 # The arguments each context was initialised with by `run_executable` (rclpy keeps no public copy).
 _ARGUMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -105,16 +106,23 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
     does (a bad parameter file, say) is printed as the reason the node refused to start, as is a
     parameter file that rcl cannot parse or that configures no node of this name.
     """
-    import rclpy
     from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     def spin(node) -> int:
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
         try:
-            rclpy.spin(node)
+            # Bounded waits, not rclpy.spin's endless one: a node with no timer (a controller in state
+            # sampling) otherwise sometimes sleeps through Ctrl-C in rcl_wait, the executor's SIGINT guard
+            # condition not waking it; back in Python between waits, the KeyboardInterrupt is raised.
+            while node.context.ok():
+                executor.spin_once(timeout_sec=SIGNAL_CHECK_PERIOD_S)
         except (*refusals, ParameterException, ParameterFileError) as error:
             print(f'{name}: refused to start: {error}', flush=True)
             return REFUSED
+        finally:
+            executor.shutdown()
         return 0
 
     try:
