@@ -71,13 +71,24 @@ def test_a_tuner_sweep_beside_an_episode_gives_only_correct_numbers(tmp_path):
 
 
 @pytest.fixture
-def hand_started(tmp_path):
-    """A plant and a computed-torque controller started by hand, in the root namespace."""
+def hand_started(ros_context, tmp_path):
+    """A plant and a computed-torque controller started by hand, in the root namespace, on the graph.
+
+    Waited for here: on a loaded machine a node process can take longer to start than an episode's
+    peer timeout. A node of the test's context is kept meanwhile: its DDS participant goes with its last
+    node, and a new one would have to discover the graph again.
+    """
     processes = [start_node(['ddarm_sim.node', '--ros-args', '-p', 'autostart:=false'], tmp_path / 'plant.log'),
                  start_node(['ddarm_control.node', 'computed_torque', '--ros-args', '-p', f'kp:={KP}',
                              '-p', f'kv:={KV}'], tmp_path / 'controller.log')]
-    yield processes
-    stop(processes)
+    keep = rclpy.create_node('keep_participant', context=ros_context)
+    try:
+        wait_for_graph(ros_context, lambda node: all(node.count_publishers(topic) >= 1 for topic in
+                                                     ('/joint_states', '/clock', '/effort_command')), timeout=60.0)
+        yield processes
+    finally:
+        keep.destroy_node()
+        stop(processes)
 
 
 def wait_for_graph(context, condition, timeout=30.0):
@@ -122,15 +133,9 @@ def test_a_second_controller_fails_the_episode_naming_it(ros_context, hand_start
                                    tmp_path / 'second.log'))
     # Only once it is on the graph, its command publisher discovered too: an episode that ends before the second
     # node joins is a good one, and under load discovery can name a node well before its endpoints match.
-    # A node kept through both: a context's DDS participant goes with its last node, and a new one would have to
-    # discover the graph again (the driver waits DISCOVERY_SETTLE for that, which a loaded machine can outlast).
-    keep = rclpy.create_node('keep_participant', context=ros_context)
-    try:
-        wait_for_graph(ros_context, lambda node: node.get_node_names_and_namespaces().count((law, '/'))
-                       == (2 if law == 'computed_torque' else 1) and node.count_publishers('/effort_command') == 2)
-        assert_episode_fails(ros_context, problem)
-    finally:
-        keep.destroy_node()
+    wait_for_graph(ros_context, lambda node: node.get_node_names_and_namespaces().count((law, '/'))
+                   == (2 if law == 'computed_torque' else 1) and node.count_publishers('/effort_command') == 2)
+    assert_episode_fails(ros_context, problem)
 
 
 def test_a_foreign_command_publisher_fails_the_episode_naming_it(ros_context, hand_started):
