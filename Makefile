@@ -3,6 +3,10 @@
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# Debian's headless browser and its WebDriver, which test/test_report_html.py opens the HTML reports in.
+BROWSER := /usr/bin/chromium /usr/bin/chromedriver
+BROWSER_INSTALL := env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
+    chromium chromium-driver
 
 .PHONY: run test
 
@@ -12,9 +16,15 @@ $(BIN)/.installed: setup.py setup.cfg package.xml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $@
 
-# Each run writes a new folder: runs/paper-<date>-<time>/REPORT.md, results.json, bags/, figures/.
+# Each run writes a new folder: runs/paper-<date>-<time>/REPORT.md, report.html, results.json, bags/, figures/.
 run: $(BIN)/.installed
 	ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST $(BIN)/ddarm reproduce --out runs/paper-$$(date +%Y%m%d-%H%M%S)
 
-test: $(BIN)/.installed
+# Installed only when missing: as root (CI), else through sudo; a fresh machine may have no package lists yet.
+$(BROWSER):
+	@if [ "$$(id -u)" = 0 ]; then sudo=; elif command -v sudo >/dev/null; then sudo=sudo; else \
+	    echo "make: $@ is missing; as root: $(BROWSER_INSTALL)" >&2; exit 1; fi; \
+	$$sudo $(BROWSER_INSTALL) || { $$sudo apt-get update && $$sudo $(BROWSER_INSTALL); }
+
+test: $(BIN)/.installed $(BROWSER)
 	$(BIN)/python -m pytest -q

@@ -40,9 +40,12 @@ setup(
         'cma==4.5.0',
         'numba==0.68.1',
         'PyYAML==6.0.3',
+        'pymoo==0.6.2',
+        'tqdm==4.70.1',
+        'Markdown==3.11.3',
     ],
     extras_require={
-        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0'],
+        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0', 'selenium==4.31.0'],
     },
     zip_safe=True,
     entry_points={

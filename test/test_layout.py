@@ -36,6 +36,7 @@ LAYERS = (
     ('ddarm.control',),
     ('ddarm.episodes',),
     ('ddarm.recording',),
+    ('ddarm.reporting',),
     ('ddarm.tuning',),
     ('ddarm.paper',),
     ('ddarm.ros',),

@@ -19,6 +19,7 @@ from ddarm.paper.schema import Results, Table4Row
 from ddarm.paper.settings import Case, PaperSettings, paper_settings
 from ddarm.paper.tables import case_text, number
 from ddarm.recording.bags import read_episode_bag
+from ddarm.reporting.html import markdown_to_html
 
 
 class ReportError(DdarmError, ValueError):
@@ -116,7 +117,8 @@ def write_report(out: Path, results: Results) -> list[Path]:
             nor figures/ yet.
         results: the reproduction's results (`Results.from_json` of a results.json).
 
-    Returns the files written: REPORT.md, then the figures.
+    Returns REPORT.md, then the figures; report.html, REPORT.md as one self-contained page (figures embedded),
+    is written beside them.
 
     Raises:
         ReportError (a ValueError): the tracking figure's Table 4 rows are missing, or an output exists
@@ -145,4 +147,5 @@ def write_report(out: Path, results: Results) -> list[Path]:
                 tables.table3(results, cells, settings), tables.table4(results, cells), tables.gains(results, cells),
                 tables.section2(results, cells, settings), _reconstruction(results), _figures_section(settings)]
     report.write_text('\n'.join(sections))
+    markdown_to_html(report, out / 'report.html')
     return [report, *written]

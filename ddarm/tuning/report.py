@@ -15,6 +15,7 @@ from matplotlib.figure import Figure
 from ddarm.episodes.indices import INDICES
 from ddarm.recording.bags import bag_result, read_episode_bag
 from ddarm.recording.runs import RunFolder
+from ddarm.reporting.html import markdown_to_html
 
 DPI = 110
 FIGURE_NAME = 'best-episode.png'
@@ -71,7 +72,10 @@ def _row(values) -> str:
 
 
 def write_tuning_report(run: RunFolder, report: dict) -> Path:
-    """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence."""
+    """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence.
+
+    Returns report.md's path; report.html, the same page self-contained (the figure embedded), is written beside it.
+    """
     spec = report['spec']
     joints = report['joint_names']
     motion = spec['motion'] or f"the paper's trajectory {spec['trajectory']}"
@@ -102,4 +106,6 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
     if report['gains_files']:
         lines += ['', 'Controller YAML: ' + ', '.join(f'`{name}`' for name in report['gains_files'])]
     lines += ['', f'![the best gains\' recorded episode]({FIGURE_NAME})', '']
-    return run.write_text('report.md', '\n'.join(lines))
+    page = run.write_text('report.md', '\n'.join(lines))
+    run.log.info('wrote %s', markdown_to_html(page, run.path / 'report.html'))
+    return page
