@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ddarm.control.laws import GainError, checked_gains
+from ddarm.control.stability import boundary_omega
 
 # The ω of the ω-rule gains the searches start from: around the paper's ω = 15, on both sides.
 SEARCH_START_OMEGAS = (8.0, 12.0, 15.0, 20.0, 30.0)
@@ -86,33 +87,8 @@ def smallest_omega(error_per_unit_kp: np.ndarray, gain_scale: np.ndarray,
     return float(np.sqrt(np.max(np.abs(error_per_unit_kp) / (gain_scale * permitted))))
 
 
-def sampled_error_dynamics(omega: float, period: float, delay: int) -> np.ndarray:
-    """The transition matrix of (2.8) for one joint under the ω rule, sampled with zero-order hold and delay d.
-
-    ë = -(k_p e + k_v ė)(t_{n-d}) held over [t_n, t_{n+1}): the double integrator's exact
-    discretisation, with the d delayed states appended. Its spectral radius below 1 is the
-    sampled simplified model's stability condition.
-    """
-    transition = np.array([[1.0, period], [0.0, 1.0]])
-    hold = np.array([[period**2 / 2.0], [period]])
-    feedback = np.array([[omega**2, 2.0 * omega]])
-    size = 2 * (delay + 1)
-    matrix = np.zeros((size, size))
-    matrix[:2, :2] = transition
-    matrix[:2, 2 * delay:2 * delay + 2] -= hold @ feedback
-    matrix[2:, :-2] = np.eye(size - 2)
-    return matrix
-
-
-def largest_stable_omega(period: float, delay: int, omega_max: float = 1e4) -> float:
-    """The ω at which the sampled simplified model (see sampled_error_dynamics) stops being stable."""
-    def stable(omega: float) -> bool:
-        return bool(np.max(np.abs(np.linalg.eigvals(sampled_error_dynamics(omega, period, delay)))) < 1.0)
-
-    low, high = 0.0, omega_max
-    if stable(high):
-        return high
-    for _ in range(200):  # bisection to float resolution
-        middle = 0.5 * (low + high)
-        low, high = (middle, high) if stable(middle) else (low, middle)
-    return low
+def largest_stable_omega(period: float, delay: int) -> float:
+    """ω* in rad/s of the ω rule (ζ = 1) per joint, sampled at `period` Δ (s) with a `delay`-sample compute delay:
+    the exact boundary of ddarm.control.stability (computed torque with an exact model; PD + gravity's per-joint
+    model, which leaves out M's coupling)."""
+    return boundary_omega(period, delay, 1.0)

@@ -12,6 +12,7 @@ from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 from ddarm.control.laws import CONTROLLERS
+from ddarm.control.stability import boundary_omega_delta
 from ddarm.paper.schema import Results
 from ddarm.paper.settings import Case, PaperSettings
 from ddarm.paper.tables import CONTROLLER_NAMES, case_text, number, paper_number, table4_cases
@@ -190,43 +191,52 @@ def table4_figure(path: Path, results: Results) -> None:
     figure.savefig(path)
 
 
+# The stability map's damping axis: around the ω rules' ζ = 1, through the d = 0 corner at ζ = 1/2.
+STABILITY_ZETAS = np.linspace(0.3, 2.0, 171)
+STABILITY_DELAYS = (0, 1, 2)
+
+
 def stability_figure(path: Path, results: Results, settings: PaperSettings) -> None:
-    """The largest stable ω of computed torque against Δ, with the paper's ω and its claimed Δ marked."""
-    rows = sorted(results.section2.stability, key=lambda row: row.period)
+    """The stability map of computed torque with an exact model: the boundary ωΔ* against ζ for d = 0, 1, 2, the
+    paper's operating point (ζ = 1, ω at the claimed Δ) and the recorded episodes at ω, each at its own ωΔ."""
     omega, claimed = settings.stability.omega, settings.stability.claimed_period
-    periods = [row.period for row in rows]
-    figure = _new_figure(8, 5)
+    delay = settings.delays['computed_torque']
+    rows = sorted(results.section2.stability, key=lambda row: row.period)
+    points = [omega * claimed] + [omega * row.period for row in rows]
+    bottom, top = 0.5 * min(points), max(3.0, 1.5 * max(points))
+    figure = _new_figure(11, 5.5)
     axis = figure.subplots()
-    axis.set_xscale('log')
     axis.set_yscale('log')
-    axis.plot(periods, [row.omega_max_stable for row in rows], '-', color='0.4',
-              label='largest stable ω (the boundary)')
-    for stable, marker, label in ((True, 'o', f'ω = {omega:g} stable at this Δ'),
-                                  (False, 'X', f'ω = {omega:g} unstable at this Δ')):
-        chosen = [row for row in rows if row.omega_15_stable == stable]
+    styles = ('--', '-.', ':')
+    for d in sorted({*STABILITY_DELAYS, delay}):
+        boundary = [boundary_omega_delta(d, zeta) for zeta in STABILITY_ZETAS]
+        if d == delay:
+            axis.fill_between(STABILITY_ZETAS, bottom, boundary, color='tab:green', alpha=0.08, linewidth=0)
+        axis.plot(STABILITY_ZETAS, boundary, linewidth=2.2 if d == delay else 1.2,
+                  color='tab:green' if d == delay else '0.4', linestyle='-' if d == delay else styles[d % 3],
+                  label=f'boundary ωΔ*, d = {d}' + (' (the paper\'s delay;\nshaded: stable)' if d == delay else ''))
+        axis.annotate(f'd = {d}', (STABILITY_ZETAS[-1], boundary[-1]), textcoords='offset points', xytext=(4, 0),
+                      va='center', fontsize=9, annotation_clip=False)
+    for diverged, marker, label in ((False, 'o', f'recorded episode at ω = {omega:g}: ran to T'),
+                                    (True, 'X', f'recorded episode at ω = {omega:g}: diverged')):
+        chosen = [row for row in rows if row.diverged_at_omega_15 == diverged]
         if chosen:
-            axis.plot([row.period for row in chosen], [row.omega_max_stable for row in chosen], marker,
-                      color='tab:green' if stable else 'tab:red', markersize=8, label=label)
+            axis.plot([1.0] * len(chosen), [omega * row.period for row in chosen], marker, linestyle='none',
+                      color='tab:red' if diverged else 'tab:blue', markersize=8, zorder=4, label=label)
     for row in rows:
-        axis.annotate(number(row.omega_max_stable), (row.period, row.omega_max_stable),
-                      textcoords='offset points', xytext=(6, 6), fontsize=8)
-    axis.axhline(omega, color='k', linestyle='--', linewidth=1, label=f'ω = {omega:g} (the paper)')
-    axis.axvline(claimed, color='0.5', linestyle=':', linewidth=1, label=f'Δ = {claimed:g} s ({1 / claimed:g} Hz)')
-    # Ticks at the periods run, in plain numbers.
-    axis.set_xticks(periods, [f'{period:g}' for period in periods])
-    axis.xaxis.set_minor_formatter(NullFormatter())
+        axis.annotate(f'Δ = {row.period:g} s', (1.0, omega * row.period), textcoords='offset points',
+                      xytext=(9, -3), fontsize=8)
+    axis.plot([1.0], [omega * claimed], '*', color='gold', markeredgecolor='k', markersize=20, zorder=3,
+              label=f'the paper: ω = {omega:g} at {1 / claimed:g} Hz (ωΔ = {omega * claimed:g}, ζ = 1)')
+    axis.axvline(1.0, color='k', linewidth=0.5)
+    axis.set_xlim(STABILITY_ZETAS[0], STABILITY_ZETAS[-1])
+    axis.set_ylim(bottom, top)
     _plain_log_ticks(axis.yaxis)
-    axis.margins(y=0.12)  # room for the value written above the highest point
-    axis.set_xlabel('sampling period Δ (s)')
-    axis.set_ylabel('ω (rad/s)')
-    top = axis.secondary_xaxis('top', functions=(lambda x: 1 / np.maximum(x, 1e-12),
-                                                 lambda x: 1 / np.maximum(x, 1e-12)))
-    top.set_xticks([1 / period for period in periods], [f'{1 / period:g}' for period in periods])
-    top.xaxis.set_minor_formatter(NullFormatter())
-    top.set_xlabel('sampling frequency 1/Δ (Hz)')
+    axis.set_xlabel('damping ζ of the ω rule (k_p = ω², k_v = 2ζω; the paper: ζ = 1)')
+    axis.set_ylabel('ωΔ (ω in rad/s, Δ the sampling period in s)')
     axis.grid(True, which='both', alpha=0.3)
-    axis.legend(fontsize=9)
-    axis.set_title(f"Computed torque, delay d = {settings.delays['computed_torque']}: stability against the "
-                   'sampling period', fontsize=10)
+    axis.legend(fontsize=9, loc='upper left', bbox_to_anchor=(1.06, 1))
+    axis.set_title('Computed torque with an exact model: the stability boundary ωΔ* of the sampled loop\n'
+                   f'(zero-order hold, delay d samples); the recorded episodes at d = {delay}, ζ = 1', fontsize=10)
     figure.tight_layout()
     figure.savefig(path)

@@ -1,0 +1,114 @@
+"""`ddarm stability`: the exact stability boundary ωΔ* of the sampled loop, against the delay d and the damping ζ."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from ddarm.cli.arguments import absolute_path
+from ddarm.cli.output import format_vector
+from ddarm.control.laws import MAX_DELAY
+from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, modal_gains
+from ddarm.motion.programmed import PAPER_TRAJECTORIES
+
+ARM_OPTIONS = ('urdf', 'model_urdf', 'trajectory', 'motion')
+
+
+def _delay(text: str) -> int:
+    """An argparse type: a compute delay the controllers accept, a whole number of samples in [0, MAX_DELAY]."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number of samples') from None
+    if not 0 <= value <= MAX_DELAY:
+        raise argparse.ArgumentTypeError(f'{value} is not in [0, {MAX_DELAY}]')
+    return value
+
+
+def _positive(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f'{text!r} is not finite and positive')
+    return value
+
+
+def _pd_gravity_modes(args: argparse.Namespace) -> tuple[list[str], np.ndarray]:
+    """The controlled joints and μ_k of M(q_f)⁻¹ diag(m̂_ii): the plant's inertia, the model's m_ii (the ω rule's),
+    at the goal q_f of the motion."""
+    from ddarm.episodes.spec import EpisodeSpec, episode_motion, model_arm, plant_arm
+
+    spec = EpisodeSpec(controller='pd_gravity', kp=(1.0,), kv=(1.0,), trajectory=args.trajectory or 1,
+                       urdf=absolute_path(args.urdf), model_urdf=absolute_path(args.model_urdf),
+                       motion=absolute_path(args.motion))
+    goal = episode_motion(spec).qf
+    plant, model = plant_arm(spec), model_arm(spec)
+    for arm in (plant, model):
+        arm.check_inertia(goal, 'the goal q_f')
+    return list(plant.joint_names), modal_gains(plant.mass_matrix(goal), np.diag(model.mass_matrix(goal)))
+
+
+def command_stability(args: argparse.Namespace) -> int:
+    if args.controller == 'pd_gravity':
+        joint_names, modes = _pd_gravity_modes(args)
+    else:
+        given = [name for name in ARM_OPTIONS if getattr(args, name) is not None]
+        if given:
+            raise StabilityError(f"--{given[0].replace('_', '-')} describes the arm of --controller pd_gravity: "
+                                 'computed torque with an exact model is the same double integrator on any arm')
+        joint_names, modes = None, np.ones(1)
+    boundaries = []
+    for delay in args.delay:
+        for zeta in args.zeta:
+            entry = {'delay': delay, 'zeta': zeta, 'omega_delta': modal_boundary_omega_delta(modes, delay, zeta)}
+            if args.period is not None:
+                entry['omega'] = entry['omega_delta'] / args.period
+            boundaries.append(entry)
+    if args.json:
+        report = {'controller': args.controller, 'boundaries': boundaries}
+        if args.period is not None:
+            report['period'] = args.period
+        if joint_names is not None:
+            report.update(joint_names=joint_names, modes=modes.tolist())
+        print(json.dumps(report))
+        return 0
+    unit = 'ωΔ*' if args.period is None else f'ωΔ* (ω* in rad/s at Δ = {args.period:g} s)'
+    print(f'ddarm stability: {args.controller}, zero-order hold, delay d samples, ω rule with damping ζ: {unit}')
+    if joint_names is not None:
+        print(f"  linearised at the goal q_f: modes μ of M(q_f)⁻¹ diag(m_ii) ({', '.join(joint_names)}) = "
+              f'{format_vector(modes)}')
+    width = 10 if args.period is None else 20
+    print('         ' + ''.join(f"{f'ζ = {zeta:g}':>{width}}" for zeta in args.zeta))
+    for row, delay in enumerate(args.delay):
+        cells = [f"{entry['omega_delta']:.6g}" + ('' if args.period is None else f" ({entry['omega']:.4g})")
+                 for entry in boundaries[row * len(args.zeta):(row + 1) * len(args.zeta)]]
+        print(f'  d = {delay:<4d}' + ''.join(f'{cell:>{width}}' for cell in cells))
+    return 0
+
+
+def add_stability_parser(commands) -> None:
+    """Register `ddarm stability` on the `ddarm` command's subparsers."""
+    stability = commands.add_parser('stability', help='the exact stability boundary ωΔ* of the sampled loop '
+                                                     'against the delay and the damping')
+    stability.add_argument('--delay', type=_delay, nargs='+', default=[0, 1, 2], metavar='D',
+                           help='compute delays in samples (0 1 2)')
+    stability.add_argument('--zeta', type=_positive, nargs='+', default=[1.0], metavar='Z',
+                           help='damping ζ of the ω rule, k_v = 2ζω (1, as the ω rules use)')
+    stability.add_argument('--controller', choices=('computed_torque', 'pd_gravity'), default='computed_torque',
+                           help='computed torque with an exact model, or PD + gravity linearised at the goal q_f '
+                                "with the arm's inertia (computed_torque)")
+    stability.add_argument('--period', type=_positive, metavar='DT', help='also ω* = ωΔ*/Δ for this Δ in s')
+    stability.add_argument('--urdf', metavar='FILE', help="PD + gravity's arm (default: the paper's)")
+    stability.add_argument('--model-urdf', metavar='FILE',
+                           help="the controller's model, whose m_ii the ω rule takes (default: --urdf)")
+    motion = stability.add_mutually_exclusive_group()
+    motion.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES,
+                        help="the paper's motion whose goal q_f PD + gravity is linearised at (default 1)")
+    motion.add_argument('--motion', metavar='FILE.yaml', help='a motion file whose goal q_f is taken')
+    stability.add_argument('--json', action='store_true', help='print one JSON object')
+    stability.set_defaults(handler=command_stability)

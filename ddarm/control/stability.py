@@ -1,0 +1,118 @@
+"""The exact stability boundary of the sampled loop: zero-order hold, a d-sample delay, the ω rule with damping ζ.
+
+Per mode, a double integrator ë = u with u(t) = -(k_p e + k_v ė)(t_{n-d}) held over [t_n, t_{n+1}). With
+x = (e, ė), the exact discretisation is x_{n+1} = A x_n - b k x_{n-d}, A = [[1, Δ], [0, 1]], b = (Δ²/2, Δ)ᵀ,
+k = (k_p, k_v), and det(z^d (z I - A) + b k) = z^d p(z): under k_p = ω², k_v = 2ζω and with w = ωΔ,
+
+    p(z) = z^d (z - 1)² + (w²/2)(z + 1) + 2ζw (z - 1),
+
+of degree d + 2 (the other d roots of the 2(d + 1) state's transition matrix are at z = 0). For small w > 0
+every root is inside the unit circle (the double root at 1 moves to 1 + w(-ζ ± √(ζ² - 1)), the d at 0 to
+|z| ~ (2ζw)^{1/d}), so the boundary ωΔ* is the smallest w > 0 at which a root reaches |z| = 1.
+
+On z = e^{iθ}, θ = π - s, p e^{-iθ/2} = w² sin(s/2) + 4iζw cos(s/2) - 4 cos²(s/2) e^{i(d + 1/2)θ}: real w
+solves its imaginary part, w(s) = (-1)^d cos(s/2) cos((d + 1/2) s) / ζ, and its real part then holds where
+
+    g(s) = cos²((d + 1/2) s) - 4ζ² (-1)^d D_d(s) = 0,   D_d(s) = sin((d + 1/2) s) / sin(s/2) = 1 + 2 Σ_{k ≤ d} cos ks,
+
+or at s = 0 (z = -1, for any w: the real part vanishes there), where w = (-1)^d / ζ, positive for even d. g is
+a Chebyshev series of degree 2d + 1 in cos s, so its critical points split [0, π] into pieces on which g is
+monotone: each sign change there holds one root, found by brentq. A pair of roots of p that only touches the
+circle (g has a double root; only at isolated ζ) leaves the loop stable on both sides and is no boundary.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.polynomial import chebyshev
+from scipy.linalg import eigh
+from scipy.optimize import brentq
+
+from ddarm.errors import DdarmError
+
+
+class StabilityError(DdarmError, ValueError):
+    """A delay, damping, period or arm the stability boundary cannot be computed for."""
+
+
+def _checked(delay, zeta) -> tuple[int, float]:
+    if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or delay < 0:
+        raise StabilityError(f'delay must be a whole number of samples >= 0, got {delay!r}')
+    if not (np.isfinite(zeta) and zeta > 0):
+        raise StabilityError(f'zeta must be finite and positive, got {zeta!r}')
+    return int(delay), float(zeta)
+
+
+def boundary_omega_delta(delay: int, zeta: float) -> float:
+    """ωΔ*: the loop with k_p = ω², k_v = 2ζω, delay d and period Δ is stable for ωΔ < ωΔ* and not at ωΔ*.
+
+    Dimensionless (only ωΔ enters p(z)); for d = 0 it is min(1/ζ, 4ζ). See the module's docstring.
+    """
+    delay, zeta = _checked(delay, zeta)
+    sign = (-1) ** delay
+    # g in the Chebyshev basis of y = cos s: cos² = (T_0 + T_{2d+1}) / 2, D_d = T_0 + 2 (T_1 + … + T_d).
+    series = np.zeros(2 * delay + 2)
+    series[0] = 0.5 - 4.0 * zeta**2 * sign
+    series[1:delay + 1] = -8.0 * zeta**2 * sign
+    series[-1] += 0.5
+    turning = chebyshev.chebroots(chebyshev.chebder(series))
+    turning = turning[np.abs(turning.imag) < 1e-9].real
+    edges = np.unique(np.concatenate([[0.0, np.pi], np.arccos(np.clip(turning, -1.0, 1.0))]))
+    half = delay + 0.5
+
+    def crossing(s: float) -> float:
+        dirichlet = 2 * delay + 1 if s == 0 else np.sin(half * s) / np.sin(s / 2)
+        return np.cos(half * s) ** 2 - 4.0 * zeta**2 * sign * dirichlet
+
+    values = [crossing(s) for s in edges]
+    crossings = [1.0 / zeta] if sign > 0 else []  # z = -1
+    for low, high, at_low, at_high in zip(edges[:-1], edges[1:], values[:-1], values[1:]):
+        if at_low * at_high < 0:
+            s = brentq(crossing, low, high, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+            crossings.append(sign * np.cos(s / 2) * np.cos(half * s) / zeta)
+    # Not empty: as w grows, all roots of p but the one tending to -1 go to infinity.
+    return float(min(w for w in crossings if w > 0))
+
+
+def boundary_omega(period: float, delay: int, zeta: float) -> float:
+    """ω* = ωΔ*/Δ in rad/s: the largest stable ω of the ω rule with damping ζ, sampled at `period` Δ (s)."""
+    if not (np.isfinite(period) and period > 0):
+        raise StabilityError(f'period must be finite and positive, got {period!r}')
+    return boundary_omega_delta(delay, zeta) / period
+
+
+def modal_gains(mass_matrix: np.ndarray, gain_diagonal: np.ndarray) -> np.ndarray:
+    """μ_k, ascending: the eigenvalues of M⁻¹ D, D = diag(`gain_diagonal`), the modes of PD + gravity.
+
+    PD + gravity linearised about the goal q_f with the arm's inertia M = M(q_f): M ë = -(K_p e + K_v ė),
+    delayed and held, under the ω rule K_p = D ω², K_v = 2ζ D ω with D = diag(m̂_ii), the controller's model at
+    q_f. M⁻¹ D is similar to the symmetric positive definite D^{1/2} M⁻¹ D^{1/2}, so the μ_k are real and
+    positive and its eigenvectors decouple the loop into double integrators with k_p = μ_k ω², k_v = 2ζμ_k ω;
+    computed torque with an exact model is the case μ_k = 1.
+
+    Gravity: the feedforward Ĝ(q^d) = G(q_f) of an exact model cancels G at the goal, and what is left,
+    ∂G/∂q(q_f) (q - q_f), is left out: the boundary is that of the loop linearised about the goal with the
+    arm's inertia alone, as the ω rule's analysis takes it. That term is a stiffness of the continuous plant,
+    acting without hold or delay, which neither discretises with the held torque nor is diagonal in these modes.
+    """
+    mass_matrix = np.asarray(mass_matrix, dtype=float)
+    gain_diagonal = np.asarray(gain_diagonal, dtype=float)
+    if not np.all(gain_diagonal > 0):
+        raise StabilityError(f'the gain diagonal m_ii must be positive, got {gain_diagonal.tolist()}')
+    try:
+        # D v = μ M v, the symmetric-definite form of M⁻¹ D v = μ v.
+        return eigh(np.diag(gain_diagonal), mass_matrix, eigvals_only=True)
+    except np.linalg.LinAlgError as error:
+        raise StabilityError('the mass matrix M(q_f) is not positive definite') from error
+
+
+def modal_boundary_omega_delta(gains: np.ndarray, delay: int, zeta: float) -> float:
+    """ωΔ* of the loop whose modes have k_p = μ_k ω², k_v = 2ζμ_k ω (`gains` = μ_k, see modal_gains).
+
+    Mode k is p(z) with w' = √μ_k w and ζ' = ζ√μ_k, so ωΔ* = min_k boundary_omega_delta(d, ζ√μ_k) / √μ_k.
+    """
+    gains = np.asarray(gains, dtype=float)
+    if not np.all(gains > 0):
+        raise StabilityError(f'the modal gains μ_k must be positive, got {gains.tolist()}')
+    roots = np.sqrt(gains)
+    return float(min(boundary_omega_delta(delay, zeta * root) / root for root in np.unique(roots)))
