@@ -16,13 +16,19 @@ from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
 from ddarm.cli.reproduce import command_reproduce
 from ddarm.cli.score import command_score
-from ddarm.cli.tune import command_tune, index_name
+from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.cli.bench import add_bench_parser
+from ddarm.cli.pareto import add_pareto_parser
+from ddarm.cli.stability import add_stability_parser
 from ddarm.cli.motion import add_motion_parser
 from ddarm.interrupts import Interrupted, stop_on_signals
+from ddarm.tuning.methods import DEFAULT_METHOD, METHODS
+
+# Enough for the global search's first restart to converge and a few more to test its basin on a 6-joint arm.
+DEFAULT_TUNE_BUDGET = 6000
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,13 +66,17 @@ def build_parser() -> argparse.ArgumentParser:
     add_episode_arguments(tune, gains=False)
     tune.add_argument('--index', type=index_name, required=True, metavar='{I1,I2,I}',
                       help='the index minimised: I1 (2.5), I2, or I = I1 + I2 (3.2); 2.5 and 3.2 also name them')
-    tune.add_argument('--method', choices=('nelder-mead', 'cma'), default='nelder-mead',
-                      help='multi-start Nelder-Mead (the paper-style default) or CMA-ES')
-    tune.add_argument('--budget', type=int, default=3000, help='most episodes evaluated (3000)')
+    tune.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD,
+                      help='global: IPOP-CMA-ES restarts then a Nelder-Mead polish (default); nelder-mead: '
+                           'multi-start Nelder-Mead from the ω-rule gains (the paper-style local search); cma: '
+                           'one CMA-ES run from the best ω-rule start')
+    tune.add_argument('--budget', type=int, default=DEFAULT_TUNE_BUDGET,
+                      help=f'most episodes evaluated ({DEFAULT_TUNE_BUDGET})')
     tune.add_argument('--omegas', type=finite, nargs='+', default=list(SEARCH_START_OMEGAS),
                       metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
     tune.add_argument('--seed', type=int, default=0, help="CMA-ES's random seed (0)")
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    add_robust_arguments(tune)
     add_output_arguments(tune)
     tune.set_defaults(handler=command_tune)
     reproduce = commands.add_parser('reproduce', help="reproduce the paper's Tables 2-4 and section 2 through "
@@ -88,6 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
                                              '(then --ros-args ...)')
     tuner.set_defaults(handler=command_tuner, takes_ros_arguments=True)
     add_bench_parser(commands)
+    add_pareto_parser(commands)
+    add_stability_parser(commands)
     add_motion_parser(commands)
     return parser
 

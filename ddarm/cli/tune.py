@@ -7,10 +7,12 @@ import json
 import shlex
 import sys
 
-from ddarm.cli.arguments import episode_spec
+from ddarm.cli.arguments import episode_spec, finite
 from ddarm.cli.output import format_vector
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import check_episode
+from ddarm.reporting.progress import Progress
+from ddarm.tuning.robust import AGGREGATES
 
 
 def index_name(text: str) -> str:
@@ -21,6 +23,43 @@ def index_name(text: str) -> str:
     return name
 
 
+def comma_numbers(text: str) -> tuple[float, ...]:
+    """A number, or numbers separated by commas (one per joint): `0,20,5`."""
+    try:
+        return tuple(finite(part) for part in text.split(','))
+    except (argparse.ArgumentTypeError, ValueError):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a finite number or finite numbers separated by '
+                                         'commas') from None
+
+
+def add_robust_arguments(parser: argparse.ArgumentParser) -> None:
+    """The scenario grid of a robust tuning: every combination of the values given is one scenario."""
+    parser.add_argument('--robust-tau', type=finite, nargs='+', action='extend', metavar='T',
+                        help='τ of the disturbance (3.1) in s, one per scenario (default: --tau)')
+    parser.add_argument('--robust-mass-scale', type=comma_numbers, nargs='+', action='extend', metavar='S',
+                        help='plant link mass / model link mass, one per scenario: a number (every link) or one '
+                             'per joint, comma-separated (1.0,1.1,1.1) (default: --mass-scale)')
+    parser.add_argument('--robust-external-torque', type=comma_numbers, nargs='+', action='extend', metavar='PZ',
+                        help='constant external torques P^z in N m, one per joint comma-separated (0,20,5), one '
+                             'vector per scenario; one starting with a minus as --robust-external-torque=-5,0,0 '
+                             '(default: --external-torque)')
+    parser.add_argument('--objective', choices=AGGREGATES,
+                        help='what the gains minimise over the scenarios: the worst case (default) or the mean')
+
+
+def robust_scenarios(args: argparse.Namespace, template):
+    """The scenarios the --robust-* options define, or None without them."""
+    from ddarm.tuning.robust import RobustError, scenario_grid
+
+    axes = (args.robust_tau, args.robust_mass_scale, args.robust_external_torque)
+    if all(axis is None for axis in axes):
+        if args.objective is not None:
+            raise RobustError('--objective needs scenarios to aggregate over: give --robust-tau, '
+                              '--robust-mass-scale and/or --robust-external-torque')
+        return None
+    return scenario_grid(template, *axes)
+
+
 def command_tune(args: argparse.Namespace) -> int:
     from ddarm.tuning.outputs import check_outputs, finish_tuning, run_folder
     from ddarm.tuning.tune import tune, with_gains
@@ -29,17 +68,26 @@ def command_tune(args: argparse.Namespace) -> int:
     template = episode_spec(args)
     for warning in check_episode(template).warnings:  # refusals first: nothing is searched before they are fixed
         print(f'ddarm tune: WARNING: {warning}', file=sys.stderr)
+    scenarios = robust_scenarios(args, template)
+    objective = args.objective or 'worst'
     progress = None if args.json else sys.stderr
     if progress:
-        print(f'searching ({args.method}, budget {args.budget} episodes, starts ω = {args.omegas}) …',
-              file=progress, flush=True)
-    tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed)
+        budget = (f'budget {args.budget} episodes' if scenarios is None else
+                  f'{args.budget} episodes on the nominal episode, then {args.budget} over {len(scenarios)} '
+                  f'scenarios ({objective} {args.index})')
+        print(f'searching ({args.method}, {budget}, starts ω = {args.omegas}) …', file=progress, flush=True)
+    label = 'search' if scenarios is None else f'robust search ({len(scenarios)} scenarios)'
+    with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
+        tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed, progress=bar.update,
+                      scenarios=scenarios, aggregate=objective)
     # Only now: a refused search leaves nothing behind.
     with run_folder('tune', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
         best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
         if progress:
-            print(f'best {args.index} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
-                  f'checking it through the ROS graph …', file=progress, flush=True)
+            best = args.index if scenarios is None else f'{objective} {args.index} over the scenarios'
+            print(f'best {best} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
+                  f'checking {"it" if scenarios is None else "its nominal episode"} through the ROS graph …',
+                  file=progress, flush=True)
         scored = check_through_graph(run, best_spec, args.storage)
         report = finish_tuning(run, template, best_spec, tuning, scored, index=args.index, method=args.method,
                                seed=args.seed, out=args.out)
@@ -72,6 +120,8 @@ def print_tuning(report: dict, tuning) -> None:
         print(f"  {label}: I1 = {values['I1']:.9g}  I2 = {values['I2']:.9g}  I = {values['I']:.9g}")
     print(f"  largest relative difference {report['max_rel_difference']:.2e} "
           f"({'agree' if report['agree'] else 'DISAGREE'}); bag {report['bag']}")
+    if 'robust' in report:
+        print_robustness(report['robust'], report['index'])
     for warning in report['warnings']:
         print(f'  WARNING: {warning}')
     if report['saturated_joints']:
@@ -81,3 +131,29 @@ def print_tuning(report: dict, tuning) -> None:
         print(f"  gains written to {', '.join(report['gains_files'])}")
     else:
         print('  no gains written: the bag does not confirm the search')
+
+
+def _cell(value: float | None) -> str:
+    return 'diverged' if value is None else f'{value:.6g}'
+
+
+def print_robustness(robust: dict, index: str) -> None:
+    """The scenarios, each with the index of the robust gains and of the nominal optimum; then worst and mean."""
+    chosen, nominal = robust['chosen'], robust['nominal_optimum']
+    search = robust['nominal_search']
+    print(f"  robust over {len(robust['scenarios'])} scenarios ({robust['objective']} {index}), against the nominal "
+          f"optimum (its search: {search['episodes']} episodes in {search['wall_time_s']:.2f} s)")
+    print(f"    nominal optimum  kp = {format_vector(nominal['kp'])}  kv = {format_vector(nominal['kv'])}")
+    rows = [(f"τ = {scenario['tau']:g} s",
+             'mass scale ' + (f"{scenario['mass_scale'][0]:g}" if len(set(scenario['mass_scale'])) == 1
+                              else format_vector(scenario['mass_scale'])),
+             'P^z ' + ('none' if scenario['external_torque'] is None else format_vector(scenario['external_torque'])),
+             _cell(None if ours['diverged'] else ours[index]), _cell(None if theirs['diverged'] else theirs[index]))
+            for scenario, ours, theirs in zip(robust['scenarios'], chosen['per_scenario'], nominal['per_scenario'])]
+    rows += [('worst', '', '', _cell(chosen['worst']), _cell(nominal['worst'])),
+             ('mean', '', '', _cell(chosen['mean']), _cell(nominal['mean']))]
+    header = ('scenario', '', '', f'robust {index}', f'nominal {index}')
+    widths = [max(len(row[column]) for row in (header, *rows)) for column in range(5)]
+    for row in (header, *rows):
+        print('    ' + '  '.join(cell.ljust(width) if column < 3 else cell.rjust(width)
+                                 for column, (cell, width) in enumerate(zip(row, widths))).rstrip())

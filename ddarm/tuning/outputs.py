@@ -15,6 +15,7 @@ from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, arm_joints
 from ddarm.recording.bags import BagError, checked_output_path
 from ddarm.recording.runs import RunFolder, controller_yaml
 from ddarm.tuning.report import write_tuning_report
+from ddarm.tuning.robust import describe_scenario
 
 # How far (relative) the bag's indices may differ from the in-process search's for the bag to confirm it.
 AGREEMENT = 1e-9
@@ -89,7 +90,8 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
 
     The gains are written only if the bag agrees with the in-process indices: gains whose evidence
     disagrees with the search are not handed to a robot. Returns the report (the JSON of `ddarm
-    tune`); its `agree` says whether the bag confirmed the search.
+    tune`); its `agree` says whether the bag confirmed the search. A robust tuning adds `robust`
+    (Robustness.to_dict); the bag is then of the robust gains' nominal episode.
     """
     in_process = tuning.best
     difference = relative_difference(in_process, scored)
@@ -102,16 +104,31 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
         'start_omegas': list(tuning.start_omegas), 'start_indices': tuning.start_indices,
         'episodes': tuning.search.episodes, 'batches': tuning.search.batches,
         'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
+        'restarts': [{**dataclasses.asdict(restart), 'index': restart.index if np.isfinite(restart.index) else None}
+                     for restart in tuning.search.restarts],
+        'restarts_within_1_percent': tuning.search.restarts_within(0.01) if tuning.search.restarts else None,
         'spec': best_spec.to_dict(), 'command': run.summary['command'],
         'joint_names': scored['joint_names'],
         'gains': {name: {'p': p, 'd': d} for name, p, d in zip(scored['joint_names'], tuning.search.kp.tolist(),
                                                                 tuning.search.kv.tolist())},
         'saturated_joints': scored.get('saturated_joints', []), 'warnings': list(tuning.warnings),
     }
+    provenance = f"{index} = {scored[index]!r} (scored from {scored['bag']})"
+    if tuning.robust is not None:
+        report['robust'] = tuning.robust.to_dict()
+        objective, chosen = tuning.robust.aggregate, tuning.robust.chosen
+        diverging = [describe_scenario(scenario, len(chosen.kp)) for scenario, scores
+                     in zip(tuning.robust.scenarios, chosen.per_scenario) if scores['diverged']]
+        if diverging:
+            report['warnings'].append(f"the robust gains diverge in {len(diverging)} of "
+                                      f"{len(tuning.robust.scenarios)} scenarios: {'; '.join(diverging)}")
+        value = chosen.aggregate(objective)
+        provenance = (f"robust over {len(tuning.robust.scenarios)} scenarios ("
+                      + (f'{objective} {index} = {value!r}' if value is not None else 'diverging in some')
+                      + f"); its nominal episode {provenance}")
     if report['agree']:
-        report['gains_files'] = write_gains(
-            run, tuning.search.kp, tuning.search.kv, best_spec,
-            f"{index} = {scored[index]!r} (scored from {scored['bag']})\nfrom: {report['command']}", out)
+        report['gains_files'] = write_gains(run, tuning.search.kp, tuning.search.kv, best_spec,
+                                            f"{provenance}\nfrom: {report['command']}", out)
     else:
         report['gains_files'] = []
     report['report'] = str(write_tuning_report(run, report))

@@ -71,6 +71,35 @@ def _row(values) -> str:
     return '| ' + ' | '.join(values) + ' |'
 
 
+def _index_cell(value: float | None) -> str:
+    return 'diverged' if value is None else f'{value:.9g}'
+
+
+def robustness_section(robust: dict, index: str, joints: list[str]) -> list[str]:
+    """The Markdown of a robust tuning: each scenario's index for the robust gains and the nominal optimum."""
+    chosen, nominal = robust['chosen'], robust['nominal_optimum']
+    lines = ['', '## Robustness', '',
+             f"The gains above minimise the {robust['objective']} {index} over {len(robust['scenarios'])} scenarios "
+             f"(every combination of τ, plant mass scale and external torque P^z); the nominal optimum minimises "
+             f"{index} of the episode above alone ({robust['nominal_search']['episodes']} episodes). Each scenario "
+             f"is run alone with each gain set.", '',
+             _row(['τ (s)', 'mass scale', 'P^z (N m)', f'robust {index}', f'nominal optimum {index}']),
+             _row(['---'] * 5)]
+    for scenario, ours, theirs in zip(robust['scenarios'], chosen['per_scenario'], nominal['per_scenario']):
+        scale = scenario['mass_scale']
+        lines.append(_row([f"{scenario['tau']:g}", ', '.join(f'{s:g}' for s in (scale[:1] if len(set(scale)) == 1
+                                                                                 else scale)),
+                           'none' if scenario['external_torque'] is None
+                           else ', '.join(f'{p:g}' for p in scenario['external_torque']),
+                           _index_cell(None if ours['diverged'] else ours[index]),
+                           _index_cell(None if theirs['diverged'] else theirs[index])]))
+    for name in ('worst', 'mean'):
+        lines.append(_row([f'**{name}**', '', '', _index_cell(chosen[name]), _index_cell(nominal[name])]))
+    lines += ['', _row(['joint', 'nominal optimum k_p', 'nominal optimum k_v']), _row(['---'] * 3)]
+    lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, nominal['kp'], nominal['kv'])]
+    return lines
+
+
 def write_tuning_report(run: RunFolder, report: dict) -> Path:
     """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence.
 
@@ -89,9 +118,13 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
              f'- motion: `{motion}`, T = {spec["duration"]:g} s, Δ = {spec["period"]:g} s, compute delay d = '
              f'{spec["delay"]}, τ = {spec["tau"]:g} s, torque limit {spec["torque_limit"]}',
              f"- search: {report['method']}, {report['episodes']} episodes in {report['wall_time_s']:.2f} s "
-             f"({report['episodes_per_s']:.0f} episodes/s), best {report['index']} = {report['search_index']:.9g}",
+             f"({report['episodes_per_s']:.0f} episodes/s), best "
+             + (f"{report['robust']['objective']} {report['index']} over the scenarios" if 'robust' in report
+                else report['index']) + f" = {report['search_index']:.9g}",
              '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
     lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, report['kp'], report['kv'])]
+    if 'robust' in report:
+        lines += robustness_section(report['robust'], report['index'], joints)
     lines += ['', '## Evidence', '', _row(['', *INDICES]), _row(['---'] * (len(INDICES) + 1)),
               _row(['in-process', *(f"{report['in_process'][k]:.9g}" for k in INDICES)]),
               _row(['from the bag', *(f"{report['from_bag'][k]:.9g}" for k in INDICES)]), '',

@@ -10,12 +10,42 @@ import numpy as np
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
-from ddarm.tuning.search import SearchResult, omega_starts, search_gains
+from ddarm.tuning.robust import ScenarioScores, scenario_record, scenario_scores
+from ddarm.tuning.search import SearchResult, check_search, omega_starts, search_gains
+
+
+@dataclass(frozen=True)
+class Robustness:
+    """A robust search set beside the nominal one: both searches' gains scored on every scenario.
+
+    `chosen` are the robust search's gains, `nominal_optimum` those of the same search on the template alone
+    (`nominal_search`, which took `nominal_wall_time_s` seconds).
+    """
+
+    scenarios: tuple[EpisodeSpec, ...]
+    aggregate: str  # 'worst' or 'mean'
+    chosen: ScenarioScores
+    nominal_optimum: ScenarioScores
+    nominal_search: SearchResult
+    nominal_wall_time_s: float
+
+    def to_dict(self) -> dict:
+        """The JSON of `ddarm tune`'s `robust`: the objective, the scenarios, both gain sets on each."""
+        dof = len(self.chosen.kp)
+        index = self.nominal_search.index
+        return {'objective': self.aggregate, 'scenarios': [scenario_record(s, dof) for s in self.scenarios],
+                'chosen': self.chosen.to_dict(), 'nominal_optimum': self.nominal_optimum.to_dict(),
+                'nominal_search': {'episodes': self.nominal_search.episodes, 'batches': self.nominal_search.batches,
+                                   'wall_time_s': self.nominal_wall_time_s,
+                                   'index': float(index) if np.isfinite(index) else None}}
 
 
 @dataclass(frozen=True)
 class Tuning:
-    """A finished search: its result, where it started, how long it took, and the best gains re-run alone."""
+    """A finished search: its result, where it started, how long it took, and the best gains re-run alone.
+
+    With scenarios, `search` is the robust search and `best` its gains' nominal episode (the template's).
+    """
 
     search: SearchResult
     start_omegas: tuple
@@ -23,6 +53,7 @@ class Tuning:
     wall_time_s: float
     best: dict  # the indices of the best gains, re-run as one episode
     warnings: tuple[str, ...] = ()  # the motion against the URDF's limits
+    robust: Robustness | None = None
 
     @property
     def episodes_per_s(self) -> float:
@@ -30,18 +61,42 @@ class Tuning:
 
 
 def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEARCH_START_OMEGAS,
-         seed: int = 0) -> Tuning:
-    """Minimise `index` (I1, I2 or I) from the ω-rule gains at each ω of `omegas`; the best gains re-run alone."""
+         seed: int = 0, progress=None, scenarios: tuple[EpisodeSpec, ...] | None = None,
+         aggregate: str = 'worst') -> Tuning:
+    """Minimise `index` (I1, I2 or I) from the ω-rule gains at each ω of `omegas`; the best gains re-run alone.
+
+    With `scenarios` (ddarm.tuning.robust.scenario_grid), the `aggregate` ('worst' or 'mean') of the index over
+    them is minimised, within `budget` episodes, after the same search (method, budget, seed) on the template
+    alone: its optimum is one more start of the robust search, so the robust gains' aggregate is never worse
+    than the nominal optimum's. `progress(episodes so far, best index so far or None)` is called after each
+    batch of the search that `search` holds (the robust one, with scenarios).
+    """
     start_kp, start_kv = omega_starts(template, omegas)
+    search = dict(index=index, budget=budget, method=method)
+    if scenarios is not None:
+        # Refused before the nominal search is spent; the first start stands in for its optimum, not known yet.
+        check_search(template, start_kp=np.vstack([start_kp, start_kp[:1]]),
+                     start_kv=np.vstack([start_kv, start_kv[:1]]), scenarios=scenarios, aggregate=aggregate, **search)
     start_indices = [run_episode(with_gains(template, kp, kv)).indices()[index]
                      for kp, kv in zip(start_kp, start_kv)]
-    started = time.perf_counter()
-    result = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget,
-                          method=method, seed=seed)
-    wall = time.perf_counter() - started
+    if scenarios is not None:
+        nominal, nominal_wall = _timed_search(template, start_kp=start_kp, start_kv=start_kv, seed=seed, **search)
+        start_kp, start_kv = np.vstack([start_kp, nominal.kp]), np.vstack([start_kv, nominal.kv])
+    result, wall = _timed_search(template, start_kp=start_kp, start_kv=start_kv, seed=seed, progress=progress,
+                                 scenarios=scenarios, aggregate=aggregate, **search)
+    robust = None if scenarios is None else Robustness(
+        tuple(scenarios), aggregate, scenario_scores(scenarios, result.kp, result.kv, index),
+        scenario_scores(scenarios, nominal.kp, nominal.kv, index), nominal, nominal_wall)
     episode = run_episode(with_gains(template, result.kp, result.kv))
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(),
-                  episode.plan.warnings)
+                  episode.plan.warnings, robust)
+
+
+def _timed_search(template: EpisodeSpec, **arguments) -> tuple[SearchResult, float]:
+    """search_gains and its wall time in s."""
+    started = time.perf_counter()
+    result = search_gains(template, **arguments)
+    return result, time.perf_counter() - started
 
 
 def with_gains(template: EpisodeSpec, kp, kv) -> EpisodeSpec:
