@@ -65,8 +65,10 @@ def test_the_settings_hold_what_the_code_held():
         assert (procedure.case, dict(procedure.disturbance), procedure.max_error_deg) == (case, disturbance, max_error)
     assert settings.stability.periods == (0.005, 0.01, 0.02, 0.025, 0.04, 0.05)
     assert (settings.stability.omega, settings.stability.claimed_period) == (15.0, 0.01)
-    assert Budget.full() == Budget(search_episodes=4000, cma_popsize=64, taus=TAUS)
-    assert Budget.quick() == Budget(search_episodes=400, cma_popsize=16, taus=(0.0, 0.05, 0.1))
+    assert Budget.full() == Budget(search_episodes=12000, de_popsize=15, taus=TAUS, pareto_episodes=8000,
+                                   robust_episodes=16000)
+    assert Budget.quick() == Budget(search_episodes=1200, de_popsize=8, taus=(0.0, 0.05, 0.1), pareto_episodes=1000,
+                                    robust_episodes=1600)
     assert settings.claims.table4_I1_ratio == Range(1.5, 4.0)  # what claims.py held before it was data
     assert len(settings.reconstruction) == 8
     assert settings.reconstruction[1].startswith("Trajectory 1 starts at q = (0, π/3, -2π/3), the end at (1, 0, 0) "
@@ -143,10 +145,16 @@ def _edit(document: dict, key: str, value) -> None:
     ('omega_procedure.pd_gravity.disturbance.mass_scale', [1.0, -1.1, 1.1], 'omega_procedure.pd_gravity.disturbance: '),
     ('omega_procedure.computed_torque.disturbance', {'external_torque': [0.0, 0.0, 0.0]},
      "omega_procedure.computed_torque.disturbance {'external_torque': (0.0, 0.0, 0.0)} causes no steady-state error"),
-    ('budgets.quick.search_episodes', 104, 'budgets.quick.search_episodes must be at least 105 (a third for '
-                                           'Nelder-Mead: a simplex of 7 points for each of the 5 ω-rule starts'),
-    ('budgets.quick.cma_popsize', 300, 'budgets.quick.search_episodes must be at least 451'),
-    ('budgets.full.cma_popsize', 1, 'budgets.full.cma_popsize must be at least 2, got 1'),
+    ('budgets.quick.search_episodes', 20, 'budgets.quick.search_episodes must be at least 21, got 20'),
+    ('budgets.quick.robust_episodes', 87, 'budgets.quick.robust_episodes must be at least 88, got 87'),
+    ('budgets.full.pareto_episodes', 101, 'budgets.full.pareto_episodes must be at least 102, got 101'),
+    ('beyond.case', {'trajectory': 2, 'T': 1.0, 'period': 0.01},
+     'beyond.case Case(trajectory=2, T=1.0, period=0.01) must be case Case(trajectory=1, T=1.0, period=0.01)'),
+    ('beyond.robust.taus', [0.0, 2.0], 'beyond.robust.taus: 2.0 must be within [0, T = 1] s'),
+    ('beyond.robust.mass_scales', [1.0, 1.0], 'beyond.robust.mass_scales must hold at least one value, none twice'),
+    ('beyond.stability_map.zetas', [0.0], 'beyond.stability_map.zetas must be finite and positive'),
+    ('beyond.law', 'pid', 'beyond.law must be one of'),
+    ('budgets.full.de_popsize', 1, 'budgets.full.de_popsize must be at least 2, got 1'),
     ('budgets.quick.taus', [], 'budgets.quick.taus must hold at least one τ'),
     ('budgets.full.search_episodes', 10**400, 'budgets.full.search_episodes is an integer beyond the range of a float'),
     ('stability.omega', -10**400, 'stability.omega is an integer beyond the range of a float'),
@@ -186,7 +194,7 @@ def test_a_case_on_a_trajectory_without_a_motion_file_is_refused(tmp_path):
 
 
 def test_the_smallest_budget_is_the_one_the_search_accepts(tmp_path):
-    """The settings' minimum search budget is a third for Nelder-Mead: three times what search_gains accepts."""
+    """The settings' minimum search budget is the least the global search accepts."""
     import re
 
     from ddarm.control.gains import SEARCH_START_OMEGAS
@@ -203,8 +211,8 @@ def test_the_smallest_budget_is_the_one_the_search_accepts(tmp_path):
     template = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3)
     start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
     with pytest.raises(SearchError) as search_refused:  # refused before any episode runs
-        search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv, budget=0, method='nelder-mead')
-    assert least == 3 * int(re.search(r'at least (\d+) episodes', str(search_refused.value))[1]) == 105
+        search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv, budget=0, method='global')
+    assert least == int(re.search(r'at least (\d+) episodes', str(search_refused.value))[1])
     document['budgets']['quick']['search_episodes'] = least
     path.write_text(yaml.safe_dump(document, allow_unicode=True))
     assert load_settings(path).budgets.quick.search_episodes == least
@@ -235,7 +243,11 @@ def results_json() -> dict:
     gains = [{'name': f'{controller}-{index}-traj{t}-T{d:g}-dt{p:g}', 'controller': controller, 'index': index,
               'trajectory': t, 'T': d, 'period': p, 'delay': delay, 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
               'search': {'episodes': 30, 'wall_time_s': 0.5, 'episodes_per_s': 60.0, 'in_process_index': 0.1,
-                         'start_index': float('inf'), 'methods': ['nelder-mead', 'cma'], 'best_method': 'cma'}}
+                         'start_index': float('inf'), 'method': 'global',
+                         'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
+                                      {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
+                                       'stopped_by': ['budget']}],
+                         'restarts_within_1_percent': 1}}
              for controller, delay in (('pd_gravity', 0), ('computed_torque', 1))
              for index, cases in (('I1', TABLE4_CASES[:1]), ('I', TABLE4_CASES)) for t, d, p in cases]
     # PD + gravity: I1 grows 2x with τ, 4x when limited; computed torque: 3x, 1.1x limited; Table 3: 1.5x.
@@ -264,11 +276,13 @@ def results_json() -> dict:
                        'I1_at_omega_15': 43 * period, 'diverged_at_omega_15': False, 'bag': 'bags/s'}
                       for period in (0.005, 0.01, 0.05)],
     }
-    return {'schema_version': 1, 'command': 'ddarm reproduce --quick', 'quick': True,
+    return {'schema_version': 2, 'command': 'ddarm reproduce --quick', 'quick': True,
             'started': '2026-12-01T09:36:23+0000',
             'settings': {'paper_delays': {'pd_gravity': 0, 'computed_torque': 1}, 'search_budget': 30,
-                         'cma_popsize': 16, 'taus': [0.0, 0.1], 'start_omegas': [8.0, 15.0]},
+                         'de_popsize': 16, 'taus': [0.0, 0.1], 'start_omegas': [8.0, 15.0],
+                         'pareto_budget': 1000, 'robust_budget': 1000},
             'gains': gains, 'table2': table2, 'table3': table3, 'table4': table4, 'section2': section2,
+            'pareto': None, 'robust': None, 'stability_map': [{'delay': 1, 'zeta': 1.0, 'omega_delta': 0.4261589}],
             'reconstruction': ['a note'], 'claims': [{'claim': 'c', 'reproduced': True, 'evidence': 'e'}],
             'wall_time_s': 12.5}
 
@@ -286,7 +300,8 @@ def test_the_schema_has_the_documented_keys():
     fields = {kind: [field.name for field in dataclasses.fields(kind)]
               for kind in (Results, GainSet, TauRow, StabilityRow, Claim)}
     assert fields[Results] == ['schema_version', 'command', 'quick', 'started', 'settings', 'gains', 'table2',
-                               'table3', 'table4', 'section2', 'reconstruction', 'claims', 'wall_time_s']
+                               'table3', 'table4', 'section2', 'pareto', 'robust', 'stability_map',
+                               'reconstruction', 'claims', 'wall_time_s']
     assert fields[TauRow] == ['controller', 'tau', 'limited', 'gains', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque',
                               'torque_limit', 'within_limits', 'bag', 'paper']
     assert fields[GainSet] == ['name', 'controller', 'index', 'trajectory', 'T', 'period', 'delay', 'kp', 'kv',
@@ -322,8 +337,8 @@ def test_the_schema_has_the_documented_keys():
     (lambda data: data['gains'][2].update(name=data['gains'][1]['name']), 'gains[2].name'),
     (lambda data: data.update(section2=[]), 'section2 must be a mapping'),
     (lambda data: data.pop('schema_version'), "missing key 'schema_version'"),
-    (lambda data: data.update(schema_version=2), 'schema_version is 2: this ddarm reads results.json of '
-                                                 'schema_version 1 only'),
+    (lambda data: data.update(schema_version=1), 'schema_version is 1: this ddarm reads results.json of '
+                                                 'schema_version 2 only'),
     (lambda data: data.update(schema_version='1'), "schema_version is '1'"),
     (lambda data: data.update(schema_version=True), 'schema_version is True'),
 ])
@@ -338,15 +353,15 @@ def test_results_off_the_schema_are_refused_naming_the_key(edit, named):
 def test_results_are_written_with_their_schema_version_first():
     results = Results(command='ddarm reproduce', quick=True, started='now', settings=Results.from_json(
         results_json()).settings)
-    assert SCHEMA_VERSION == 1 and list(results.to_json())[0] == 'schema_version'
-    assert results.to_json()['schema_version'] == 1
+    assert SCHEMA_VERSION == 2 and list(results.to_json())[0] == 'schema_version'
+    assert results.to_json()['schema_version'] == 2
 
 
 def test_another_versions_keys_are_refused_by_the_version_not_by_a_key():
     data = results_json()
-    data.update(schema_version=2, table5=[])
+    data.update(schema_version=1, table5=[])
     del data['table2']
-    with pytest.raises(ResultsError, match='schema_version is 2'):
+    with pytest.raises(ResultsError, match='schema_version is 1'):
         Results.from_json(data, 'old.json')
 
 

@@ -60,7 +60,11 @@ def synthetic_results(scores: dict) -> dict:
               'period': 0.01, 'delay': DELAYS[controller], 'kp': list(GAINS[controller][0]),
               'kv': list(GAINS[controller][1]),
               'search': {'episodes': 600, 'wall_time_s': 0.5, 'episodes_per_s': 1200.0, 'in_process_index': 0.1,
-                         'start_index': 4.0, 'methods': ['nelder-mead', 'cma'], 'best_method': 'cma'}}
+                         'start_index': 4.0, 'method': 'global',
+                         'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
+                                      {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
+                                       'stopped_by': ['budget']}],
+                         'restarts_within_1_percent': 1}}
              for controller in CONTROLLERS for index in ('I1', 'I')]
 
     def tau_row(controller, tau, limited, index, first, paper):
@@ -106,11 +110,27 @@ def synthetic_results(scores: dict) -> dict:
                'evidence': 'I1 ratios PD/CT: 3.9, 1.2, 1.2, 5.6'},
               {'claim': 'with torque limits PD + gravity degrades far more', 'reproduced': False,
                'evidence': 'limited at τ = 0.1: PD 0.4, CT 0.5'}]
-    return {'schema_version': 1, 'command': 'ddarm reproduce --out runs/paper --quick', 'quick': True,
+    search = gains[0]['search']
+    front = [{'I1': 0.07 + 0.01 * i, 'I2': 0.4 - 0.03 * i, 'kp': [900.0] * 3, 'kv': [60.0] * 3} for i in range(5)]
+    pareto = {'controller': 'computed_torque', 'trajectory': 1, 'T': 1.0, 'period': 0.01, 'delay': 1,
+              'method': 'NSGA-II', 'episodes': 1000, 'wall_time_s': 2.0, 'front_size': 9, 'searches': 3,
+              'searches_converged': 1, 'seeds': ['computed_torque-I1', 'computed_torque-I'],
+              'seeds_on_front': [True, True], 'front': front}
+    rows = [{'tau': tau, 'mass_scale': [scale] * 3, 'gains': name, 'I1': 0.1, 'I2': 0.3, 'I': 0.4 + tau,
+             'diverged': False, 'bag': bag('computed_torque')}
+            for tau in (0.0, 0.1) for scale in (0.8, 1.2) for name in ('robust', 'nominal')]
+    robust = {'controller': 'computed_torque', 'trajectory': 1, 'T': 1.0, 'period': 0.01, 'delay': 1,
+              'objective': 'worst', 'kp': [900.0] * 3, 'kv': [60.0] * 3, 'nominal': 'computed_torque-I',
+              'search': search, 'rows': rows}
+    stability_map = [{'delay': d, 'zeta': z, 'omega_delta': w} for d, z, w in
+                     ((0, 0.7, 1 / 0.7), (0, 1.0, 1.0), (1, 0.7, 0.495), (1, 1.0, 0.4262))]
+    return {'schema_version': 2, 'command': 'ddarm reproduce --out runs/paper --quick', 'quick': True,
             'started': '2026-11-23T12:30:00+0000', 'wall_time_s': 41.7,
-            'settings': {'paper_delays': DELAYS, 'search_budget': 600, 'cma_popsize': 16, 'taus': TAUS,
-                         'start_omegas': [8.0, 12.0, 15.0, 20.0, 30.0]},
+            'settings': {'paper_delays': DELAYS, 'search_budget': 600, 'de_popsize': 16, 'taus': TAUS,
+                         'start_omegas': [8.0, 12.0, 15.0, 20.0, 30.0], 'pareto_budget': 1000,
+                         'robust_budget': 1000},
             'gains': gains, 'table2': table2, 'table3': table3, 'table4': table4, 'section2': section2,
+            'pareto': pareto, 'robust': robust, 'stability_map': stability_map,
             'claims': claims,
             'reconstruction': ['Joint 2 at the origin, on the z axis at z = 0.',
                                'Trajectory 1 starts at q0 = (0, π/3, -2π/3).']}
@@ -173,7 +193,7 @@ def test_the_report_puts_our_figures_beside_the_papers_and_links_their_bags(writ
 def test_every_figure_is_a_drawn_png(written):
     out, _, files = written
     names = {path.name for path in files[1:]}
-    assert names == {'tracking.png', 'index_vs_tau.png', 'table4.png', 'stability.png'}
+    assert names == {'tracking.png', 'index_vs_tau.png', 'table4.png', 'stability.png', 'pareto.png'}
     for path in files[1:]:
         data = path.read_bytes()
         assert data[:8] == PNG_SIGNATURE and data[12:16] == b'IHDR', path

@@ -175,7 +175,7 @@ def test_the_reproduction_writes_report_html_beside_report_md(browser, tmp_path,
     write_report(out, Results.from_json(synthetic_results(scores)))
     links = assert_drawn_whole(browser, out / 'report.html',
                                'Reproduction: the choice of feedback gains for a direct-drive manipulator (Kowalska)',
-                               4, tmp_path / 'screenshot.png')
+                               5, tmp_path / 'screenshot.png')
     assert set(links) == {f'bags/{controller}' for controller in CONTROLLERS}
 
 

@@ -9,6 +9,7 @@ import sys
 import time
 
 from ddarm.interrupts import critical_section
+from ddarm.reporting.progress import Progress
 
 
 def command_reproduce(args: argparse.Namespace) -> int:
@@ -29,8 +30,10 @@ def command_reproduce(args: argparse.Namespace) -> int:
     # The folder's summary.json says `running` until the report is written: an interrupted or
     # killed reproduction is never taken for a finished one.
     with RunFolder(out.name, out.parent, command=command) as run:
-        reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress)
+        reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress,
+                                    lambda label, total, index_name: Progress(total, label, index_name=index_name))
         gains = reproduction.search_all()
+        reproduction.search_beyond(gains)
         progress('running every reported episode through the ROS graph (lockstep), recording each')
         with GraphSession(out / 'nodes') as session:
             reproduction.run_episodes(session, gains)

@@ -16,15 +16,19 @@ import numpy as np
 
 from ddarm.control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega_rule_computed_torque
 from ddarm.control.laws import CONTROLLERS
-from ddarm.episodes.engine import simulate_batch
+from ddarm.control.stability import boundary_omega_delta
 from ddarm.episodes.spec import EpisodeSpec, gains_from_omega
 from ddarm.motion.programmed import paper_torque_limit, paper_trajectory, within_limits
 from ddarm.paper.claims import judge_claims
-from ddarm.paper.schema import (GainSet, OmegaProcedureRow, OmegaRuleRow, Results, RunSettings, Search, StabilityRow,
+from ddarm.paper.schema import (BoundaryRow, FrontRow, GainSet, OmegaProcedureRow, OmegaRuleRow, ParetoFront,
+                                RestartRow, Results, Robustness, RunSettings, ScenarioRow, Search, StabilityRow,
                                 Table4Row, TauRow)
 from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
+from ddarm.reporting.progress import Progress
+from ddarm.tuning.pareto import pareto_front
 from ddarm.tuning.procedures import omega_procedure
+from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
 from ddarm.tuning.tune import with_gains
 
@@ -42,43 +46,47 @@ def _template(controller: str, case: Case) -> EpisodeSpec:
                        duration=case.T, period=case.period, delay=paper_settings().delays[controller])
 
 
-def optimise(template: EpisodeSpec, index: str, budget: Budget) -> GainSet:
-    """Multi-start Nelder-Mead from the ω-rule gains (it finds the basin quickly in small batches), then
-    CMA-ES from its best point (large batches, finer): the lower of the two."""
+def _search_record(result, wall: float, start_count: int) -> Search:
+    """A finished global search as results.json keeps it: the search scores its `start_count` starts first."""
+    restarts = [RestartRow(start=restart.start, popsize=restart.popsize, episodes=restart.episodes,
+                           index=restart.index if np.isfinite(restart.index) else None,
+                           stopped_by=restart.stopped_by) for restart in result.restarts]
+    return Search(episodes=result.episodes, wall_time_s=wall, episodes_per_s=result.episodes / wall,
+                  in_process_index=result.index, start_index=float(np.min(result.history_index[:start_count])),
+                  method=result.method, restarts=restarts, restarts_within_1_percent=result.restarts_within(0.01))
+
+
+def optimise(template: EpisodeSpec, index: str, budget: Budget, progress=None) -> GainSet:
+    """The global search (differential evolution, then local CMA-ES runs) from the ω-rule gains: the best there
+    are, with how many of its local runs reached them. `progress` as search_gains takes it."""
     start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
     started = time.perf_counter()
-    simplex = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv,
-                           budget=budget.search_episodes // 3, method='nelder-mead')
-    population = search_gains(template, index=index, start_kp=[simplex.kp], start_kv=[simplex.kv],
-                              budget=budget.search_episodes - simplex.episodes, method='cma',
-                              popsize=budget.cma_popsize, step=0.3)
+    result = search_gains(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget.search_episodes,
+                          method='global', popsize=budget.de_popsize, progress=progress)
     wall = time.perf_counter() - started
-    best = min((simplex, population), key=lambda result: result.index)
-    episodes = simplex.episodes + population.episodes
-    starts = simulate_batch(template, start_kp, start_kv)
-    start_index = float(np.min(np.where(starts.diverged, np.inf, getattr(starts, index))))
     return GainSet(name=f'{template.controller}-{index}-traj{template.trajectory}-T{template.duration:g}'
                         f'-dt{template.period:g}',
                    controller=template.controller, index=index, trajectory=template.trajectory,
                    T=template.duration, period=template.period, delay=template.delay,
-                   kp=tuple(best.kp.tolist()), kv=tuple(best.kv.tolist()),
-                   search=Search(episodes=episodes, wall_time_s=wall, episodes_per_s=episodes / wall,
-                                 in_process_index=best.index, start_index=start_index,
-                                 methods=('nelder-mead', 'cma'), best_method=best.method))
+                   kp=tuple(result.kp.tolist()), kv=tuple(result.kv.tolist()),
+                   search=_search_record(result, wall, len(start_kp)))
 
 
 class Reproduction:
     """Runs every experiment into one output folder: bags/ here, results.json and the report by the caller."""
 
-    def __init__(self, out: Path, budget: Budget, command: str, progress=None) -> None:
+    def __init__(self, out: Path, budget: Budget, command: str, progress=None, bar=None) -> None:
         self.out, self.budget, self.command = out, budget, command
         self.progress = progress or (lambda message: None)
+        # bar(label, total, index_name): the Progress each search reports to (shown by the caller; none by default).
+        self.bar = bar or (lambda label, total, index_name: Progress(total, label, quiet=True))
         self.settings = paper_settings()
         self.results = Results(
             command=command, quick=budget != self.settings.budgets.full,
             started=time.strftime('%Y-%m-%dT%H:%M:%S%z'),
             settings=RunSettings(paper_delays=self.settings.delays, search_budget=budget.search_episodes,
-                                 cma_popsize=budget.cma_popsize, taus=budget.taus, start_omegas=SEARCH_START_OMEGAS),
+                                 de_popsize=budget.de_popsize, taus=budget.taus, start_omegas=SEARCH_START_OMEGAS,
+                                 pareto_budget=budget.pareto_episodes, robust_budget=budget.robust_episodes),
             reconstruction=self.settings.reconstruction)
 
     def _episode(self, recorder: EpisodeRecorder, spec: EpisodeSpec, name: str) -> dict:
@@ -102,17 +110,76 @@ class Reproduction:
                 for case in cases:
                     self.progress(f'searching {controller} ({index}) trajectory {case.trajectory}, T = {case.T}, '
                                   f'Δ = {case.period}')
-                    entry = optimise(_template(controller, case), index, self.budget)
+                    with self.bar(f'{controller} {index}', self.budget.search_episodes, index) as bar:
+                        entry = optimise(_template(controller, case), index, self.budget, bar.update)
                     self.results.gains.append(entry)
                     gains[(controller, index, case)] = entry
         return gains
+
+    def search_beyond(self, gains: dict) -> None:
+        """In-process, after the searches: the I1–I2 front and the robust gains of `beyond.law` in `beyond.case`,
+        and the stability map."""
+        beyond = self.settings.beyond
+        template = _template(beyond.law, beyond.case)
+        seeds = [gains[(beyond.law, index, beyond.case)] for index in ('I1', 'I')]
+        self.progress(f'I1–I2 front: {beyond.law} trajectory {beyond.case.trajectory}, T = {beyond.case.T}, '
+                      f'Δ = {beyond.case.period}')
+        with self.bar('front', self.budget.pareto_episodes, 'I') as bar:
+            front = pareto_front(template, budget=self.budget.pareto_episodes,
+                                 seeds=[(np.array(seed.kp), np.array(seed.kv)) for seed in seeds], progress=bar.update)
+        self.results.pareto = ParetoFront(
+            controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
+            delay=template.delay, method=front.method, episodes=front.episodes, wall_time_s=front.wall_time_s,
+            front_size=front.front_size, searches=front.searches, searches_converged=front.searches_converged,
+            seeds=tuple(seed.name for seed in seeds), seeds_on_front=front.seeds_on_front,
+            front=[FrontRow(I1=point.I1, I2=point.I2, kp=tuple(point.kp.tolist()), kv=tuple(point.kv.tolist()))
+                   for point in front.front])
+        grid = beyond.robust
+        self.progress(f'robust gains: {beyond.law}, {grid.objective} I over τ = {list(grid.taus)} × mass scale '
+                      f'{list(grid.mass_scales)}')
+        scenarios = scenario_grid(template, taus=grid.taus, mass_scales=grid.mass_scales)
+        nominal = seeds[1]
+        start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
+        start_kp, start_kv = np.vstack([start_kp, nominal.kp]), np.vstack([start_kv, nominal.kv])
+        started = time.perf_counter()
+        with self.bar('robust search', self.budget.robust_episodes, 'I') as bar:
+            result = search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv,
+                                  budget=self.budget.robust_episodes, method='global', popsize=self.budget.de_popsize,
+                                  scenarios=scenarios, aggregate=grid.objective, progress=bar.update)
+        self.results.robust = Robustness(
+            controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
+            delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()),
+            kv=tuple(result.kv.tolist()), nominal=nominal.name,
+            search=_search_record(result, time.perf_counter() - started, len(start_kp)), rows=[])
+        self.results.stability_map = [
+            BoundaryRow(delay=delay, zeta=zeta, omega_delta=boundary_omega_delta(delay, zeta))
+            for delay in beyond.stability_map.delays for zeta in beyond.stability_map.zetas]
 
     def run_episodes(self, recorder: EpisodeRecorder, gains: dict) -> None:
         for controller in CONTROLLERS:  # one law at a time: the session then starts each controller once
             self._tables_2_and_3(recorder, gains, controller)
             self._table4(recorder, gains, controller)
             self._section2(recorder, controller)
+            if self.results.robust is not None and controller == self.results.robust.controller:
+                self._robust(recorder, gains)
         self._stability(recorder)
+
+    def _robust(self, recorder: EpisodeRecorder, gains: dict) -> None:
+        """The robust gains and the nominal optimum on every scenario, each through the ROS graph."""
+        robust, beyond = self.results.robust, self.settings.beyond
+        nominal = self.results.gain_set(robust.nominal)
+        template = _template(beyond.law, beyond.case)
+        rows = []
+        for scenario in scenario_grid(template, taus=beyond.robust.taus, mass_scales=beyond.robust.mass_scales):
+            for name, kp, kv in (('robust', robust.kp, robust.kv), ('nominal', nominal.kp, nominal.kv)):
+                self.progress(f'robust: {name} gains at τ = {scenario.tau}, mass scale {scenario.mass_scale}')
+                scale = '-'.join(f'{value:g}' for value in scenario.mass_scale)
+                row = self._episode(recorder, with_gains(scenario, kp, kv),
+                                    f'robust-{name}-tau{scenario.tau:.2f}-mass{scale}')
+                rows.append(ScenarioRow(tau=scenario.tau, mass_scale=tuple(scenario.mass_scale), gains=name,
+                                        I1=row['I1'], I2=row['I2'], I=row['I'], diverged=row['diverged'],
+                                        bag=row['bag']))
+        self.results.robust = dataclasses.replace(robust, rows=rows)
 
     def _tables_2_and_3(self, recorder: EpisodeRecorder, gains: dict, controller: str) -> None:
         case = self.settings.case

@@ -240,3 +240,40 @@ def stability_figure(path: Path, results: Results, settings: PaperSettings) -> N
                    f'(zero-order hold, delay d samples); the recorded episodes at d = {delay}, ζ = 1', fontsize=10)
     figure.tight_layout()
     figure.savefig(path)
+
+
+def pareto_figure(path: Path, results: Results, settings: PaperSettings) -> None:
+    """The I1–I2 front (in-process) with the seeds' episodes as scored from their bags and the paper's Table 4 point."""
+    front = results.pareto
+    case = Case(trajectory=front.trajectory, T=front.T, period=front.period)
+    figure = _new_figure(8, 5.5)
+    axis = figure.subplots()
+    I1 = np.array([point.I1 for point in front.front])
+    I2 = np.array([point.I2 for point in front.front])
+    axis.plot(I1, I2, '-o', color=COLOURS[front.controller], markersize=3.5,
+              label=f'front, in-process ({len(I1)} of {front.front_size} non-dominated episodes)')
+    # The seeds as their bags score them: the (2.5) optimum's undisturbed Table 2 episode, the (3.2) one's Table 4.
+    recorded = {row.gains: row for row in results.table4 if row.gains in front.seeds}
+    recorded.update({row.gains: row for row in results.table2 if row.gains in front.seeds and row.tau == 0
+                     and not row.limited and row.gains not in recorded})
+    markers = {'I1': ('s', 'our (2.5) optimum'), 'I': ('D', 'our (3.2) optimum')}
+    for name in front.seeds:
+        row = recorded.get(name)
+        if row is None or row.diverged:
+            continue
+        marker, label = markers[results.gain_set(name).index]
+        axis.plot(row.I1, row.I2, marker, color='k', markersize=9, markerfacecolor='none', markeredgewidth=1.6,
+                  label=f'{label}, scored from its bag')
+    paper = settings.table4_figures(front.controller, case)
+    axis.plot(paper.I1, paper.I2, '*', color='tab:orange', markersize=13, label="the paper's Table 4 (3.2) optimum")
+    axis.set_xscale('log')
+    axis.set_yscale('log')
+    _plain_log_ticks(axis.xaxis)
+    _plain_log_ticks(axis.yaxis)
+    axis.set_xlabel('I1 (2.5), tracking error')
+    axis.set_ylabel('I2, torque deviation from nominal')
+    axis.set_title(f'{CONTROLLER_NAMES[front.controller]}, {case_text(front.trajectory, front.T, front.period)}')
+    axis.grid(True, which='both', alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path)

@@ -103,9 +103,12 @@ hollow markers: the paper's figures.
 
 Table 4 as bars: I1 (lower part) and I2 (upper part) stacked to I, ours beside the paper's.
 
-![Stability boundary](figures/stability.png)
+![Stability map](figures/stability.png)
 
-The largest stable ω of computed torque (delay {delay}) against the sampling period Δ, with ω = {omega:g} marked.
+The stability map of computed torque with an exact model: the boundary ωΔ* against the damping ratio ζ for
+d = 0, 1, 2 (the region below each curve is stable), the paper's operating point (ζ = 1, ω = {omega:g} rad/s at
+its claimed Δ, delay {delay}) as a point, and the recorded episodes at ω = {omega:g} for each Δ at their own ωΔ,
+marked by how they ended.
 """
 
 
@@ -138,6 +141,8 @@ def write_report(out: Path, results: Results) -> list[Path]:
              'index_vs_tau.png': lambda path: figures.index_vs_tau_figure(path, results, settings),
              'table4.png': lambda path: figures.table4_figure(path, results),
              'stability.png': lambda path: figures.stability_figure(path, results, settings)}
+    if results.pareto is not None:
+        drawn['pareto.png'] = lambda path: figures.pareto_figure(path, results, settings)
     written = []
     for name, draw in drawn.items():
         draw(folder / name)
@@ -145,7 +150,8 @@ def write_report(out: Path, results: Results) -> list[Path]:
     cells = tables.Cells(out)
     sections = [_header(results, out), _claims(results), tables.table2(results, cells, settings),
                 tables.table3(results, cells, settings), tables.table4(results, cells), tables.gains(results, cells),
-                tables.section2(results, cells, settings), _reconstruction(results), _figures_section(settings)]
+                tables.section2(results, cells, settings), tables.beyond(results, cells, settings),
+                _reconstruction(results), _figures_section(settings)]
     report.write_text('\n'.join(sections))
     markdown_to_html(report, out / 'report.html')
     return [report, *written]

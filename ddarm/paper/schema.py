@@ -23,7 +23,7 @@ from ddarm.paper.settings import Controller, Table4Figures
 Index = Literal[INDICES]
 Vector = tuple[float, ...]
 # results.json's layout: raise it with any change to the keys or their meaning.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 
 class ResultsError(DdarmError, ValueError):
@@ -34,9 +34,22 @@ class ResultsError(DdarmError, ValueError):
 class RunSettings:
     paper_delays: Mapping[Controller, int]
     search_budget: int
-    cma_popsize: int
+    de_popsize: int
     taus: Vector
     start_omegas: Vector
+    pareto_budget: int
+    robust_budget: int
+
+
+@dataclass(frozen=True)
+class RestartRow:
+    """One CMA-ES run of a global search (ddarm.tuning.search.Restart)."""
+
+    start: str  # 'ω rule' or 'random'
+    popsize: int
+    episodes: int
+    index: float | None  # its best index; None when every episode of the run diverged
+    stopped_by: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -46,8 +59,9 @@ class Search:
     episodes_per_s: float
     in_process_index: float
     start_index: float  # the best ω-rule start's index
-    methods: tuple[str, ...]
-    best_method: str
+    method: str
+    restarts: list[RestartRow]
+    restarts_within_1_percent: int  # the runs whose best is within 1 % of in_process_index: a confidence figure
 
 
 @dataclass(frozen=True)
@@ -157,6 +171,80 @@ class StabilityRow:
 
 
 @dataclass(frozen=True)
+class FrontRow:
+    """One point of the I1–I2 front (in-process, batch engine) and its gains."""
+
+    I1: float
+    I2: float
+    kp: Vector
+    kv: Vector
+
+
+@dataclass(frozen=True)
+class ParetoFront:
+    """The I1–I2 front of one law in one case (ddarm.tuning.pareto), seeded by that case's I1 and I optima.
+
+    `seeds` names the gain sets that seeded it (results.gains); `seeds_on_front` says whether each is one of
+    the front's `front_size` non-dominated episodes."""
+
+    controller: Controller
+    trajectory: int
+    T: float
+    period: float
+    delay: int
+    method: str
+    episodes: int
+    wall_time_s: float
+    front_size: int
+    searches: int
+    searches_converged: int
+    seeds: tuple[str, ...]
+    seeds_on_front: tuple[bool, ...]
+    front: list[FrontRow]
+
+
+@dataclass(frozen=True)
+class ScenarioRow:
+    """One scenario's episode through the ROS graph, scored from its bag, for one gain set."""
+
+    tau: float
+    mass_scale: Vector
+    gains: Literal['robust', 'nominal']
+    I1: float
+    I2: float
+    I: float
+    diverged: bool
+    bag: str
+
+
+@dataclass(frozen=True)
+class Robustness:
+    """Gains tuned for the `objective` (worst or mean) of I (3.2) over the scenarios, beside the nominal optimum
+    (`nominal`, a results.gains name), each run on every scenario through the ROS graph (`rows`)."""
+
+    controller: Controller
+    trajectory: int
+    T: float
+    period: float
+    delay: int
+    objective: Literal['worst', 'mean']
+    kp: Vector
+    kv: Vector
+    nominal: str
+    search: Search
+    rows: list[ScenarioRow]
+
+
+@dataclass(frozen=True)
+class BoundaryRow:
+    """ωΔ* of the sampled loop for a delay d and damping ratio ζ (ddarm.control.stability)."""
+
+    delay: int
+    zeta: float
+    omega_delta: float
+
+
+@dataclass(frozen=True)
 class Section2:
     omega_rules: list[OmegaRuleRow] = field(default_factory=list)
     omega_procedure: list[OmegaProcedureRow] = field(default_factory=list)
@@ -185,6 +273,9 @@ class Results:
     table3: list[TauRow] = field(default_factory=list)
     table4: list[Table4Row] = field(default_factory=list)
     section2: Section2 = field(default_factory=Section2)
+    pareto: ParetoFront | None = None
+    robust: Robustness | None = None
+    stability_map: list[BoundaryRow] = field(default_factory=list)
     reconstruction: tuple[str, ...] = ()
     claims: list[Claim] = field(default_factory=list)
     wall_time_s: float | None = None
@@ -214,6 +305,11 @@ class Results:
                 if row.gains not in names:
                     raise ResultsError(f'{source}: {part}[{i}].gains names {row.gains!r}, which is not in '
                                        'results.gains')
+        named = [('robust.nominal', results.robust.nominal)] if results.robust else []
+        named += [(f'pareto.seeds[{i}]', name) for i, name in enumerate(results.pareto.seeds if results.pareto else ())]
+        for key, name in named:
+            if name not in names:
+                raise ResultsError(f'{source}: {key} names {name!r}, which is not in results.gains')
         return results
 
     @classmethod

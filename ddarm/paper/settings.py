@@ -30,7 +30,9 @@ from ddarm.errors import DdarmError
 from ddarm.motion.files import DataLoader
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints
 from ddarm.paper import typed
+from ddarm.tuning.pareto import DEFAULT_POPULATION
 from ddarm.tuning.procedures import steady_state_error_per_unit_gain
+from ddarm.tuning.search import LOCAL_POPSIZE
 
 SETTINGS_PATH = Path(__file__).resolve().parent / 'data' / 'settings.yaml'
 
@@ -54,11 +56,14 @@ class Case:
 
 @dataclass(frozen=True)
 class Budget:
-    """How hard the searches try (episodes per search, CMA-ES population) and the τ run through ROS."""
+    """How hard the searches try (episodes per search, DE's population per dimension; episodes of the front and
+    of the robust search) and the τ run through ROS."""
 
     search_episodes: int
-    cma_popsize: int
+    de_popsize: int
     taus: tuple[float, ...]
+    pareto_episodes: int
+    robust_episodes: int
 
     @classmethod
     def full(cls) -> Budget:
@@ -131,6 +136,34 @@ class Stability:
 
 
 @dataclass(frozen=True)
+class RobustGrid:
+    """The scenarios the robust gains are tuned over: τ (3.1) × plant link-mass scale (every link), and the aggregate."""
+
+    taus: tuple[float, ...]
+    mass_scales: tuple[float, ...]
+    objective: Literal['worst', 'mean']
+
+
+@dataclass(frozen=True)
+class StabilityMap:
+    """The delays d and damping ratios ζ of the stability map (ωΔ* of ddarm.control.stability)."""
+
+    delays: tuple[int, ...]
+    zetas: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Beyond:
+    """What ddarm adds to the paper: the I1–I2 front and the robust gains of one law in one Table 4 case, whose
+    (3.2) optimum is set on the front and is the nominal gains the robust ones are compared with; the map."""
+
+    law: Controller
+    case: Case
+    robust: RobustGrid
+    stability_map: StabilityMap
+
+
+@dataclass(frozen=True)
 class PaperSettings:
     delays: Mapping[Controller, int]
     case: Case
@@ -144,6 +177,7 @@ class PaperSettings:
     stability: Stability
     claims: ClaimThresholds
     budgets: Budgets
+    beyond: Beyond
     reconstruction: tuple[str, ...]
 
     @property
@@ -217,6 +251,9 @@ def _check(settings: PaperSettings, path: Path) -> None:
     for key, reason in needs.items():
         if cases[key] not in settings.table4_cases:
             fail(f'{key} {cases[key]} must be one of the table4 cases: {reason}')
+    if settings.beyond.case != settings.case:
+        fail(f'beyond.case {settings.beyond.case} must be case {settings.case}: the front is seeded by the (2.5) and '
+             '(3.2) optima searched there, and the robust gains are set beside its (3.2) optimum')
     for controller, procedure in settings.omega_procedure.items():
         for option, values in procedure.disturbance.items():
             if len(values) != joints['case']:
@@ -224,6 +261,26 @@ def _check(settings: PaperSettings, path: Path) -> None:
                      f'{joints["case"]} joints of trajectory {settings.case.trajectory}')
     _check_runs(settings, cases, joints, fail)
     _check_claims_and_budgets(settings, max(joints.values()), fail)
+    _check_beyond(settings.beyond, fail)
+
+
+def _check_beyond(beyond: Beyond, fail) -> None:
+    for tau in beyond.robust.taus:
+        if not (math.isfinite(tau) and 0 <= tau <= beyond.case.T):
+            fail(f'beyond.robust.taus: {tau!r} must be within [0, T = {beyond.case.T:g}] s')
+    for scale in beyond.robust.mass_scales:
+        _positive(fail, 'beyond.robust.mass_scales', scale)
+    for key, values in (('beyond.robust.taus', beyond.robust.taus), ('beyond.robust.mass_scales',
+                                                                      beyond.robust.mass_scales),
+                        ('beyond.stability_map.delays', beyond.stability_map.delays),
+                        ('beyond.stability_map.zetas', beyond.stability_map.zetas)):
+        if not values or len(set(values)) != len(values):
+            fail(f'{key} must hold at least one value, none twice, got {list(values)}')
+    for delay in beyond.stability_map.delays:
+        if delay < 0:
+            fail(f'beyond.stability_map.delays: {delay} must be a whole number of samples >= 0')
+    for zeta in beyond.stability_map.zetas:
+        _positive(fail, 'beyond.stability_map.zetas', zeta)
 
 
 def _positive(fail, key: str, value: float) -> None:
@@ -305,21 +362,21 @@ def _check_claims_and_budgets(settings: PaperSettings, joints: int, fail) -> Non
     _positive(fail, 'claims.table4_I1_ratio.low', ratio.low)
     if not (math.isfinite(ratio.high) and ratio.high >= ratio.low):
         fail(f'claims.table4_I1_ratio.high must be finite and at least low = {ratio.low!r}, got {ratio.high!r}')
-    # Each search (ddarm.paper.experiments.optimise) spends a third of its episodes on Nelder-Mead from the
-    # ω-rule starts, the rest on CMA-ES from its best point. ddarm.tuning.search.search_gains refuses a
-    # Nelder-Mead budget below one simplex per start: starts x (2n + 1) points for n joints' k_p and k_v. CMA-ES
-    # needs its start and, to search at all, one population.
-    simplices = len(SEARCH_START_OMEGAS) * (2 * joints + 1)
+    # Each search (ddarm.paper.experiments.optimise) is the global search: ddarm.tuning.search.search_gains
+    # refuses a budget below its ω-rule starts and one local population; the robust search has the nominal optimum
+    # as one more start, and each point costs an episode per scenario; the front needs its two seeds and a first
+    # population.
+    search_least = len(SEARCH_START_OMEGAS) + LOCAL_POPSIZE
+    scenarios = len(settings.beyond.robust.taus) * len(settings.beyond.robust.mass_scales)
     for name in ('full', 'quick'):
         budget, key = getattr(settings.budgets, name), f'budgets.{name}'
-        if budget.cma_popsize < 2:
-            fail(f'{key}.cma_popsize must be at least 2, got {budget.cma_popsize}')
-        # The smallest n with n // 3 >= simplices and n - n // 3 >= 1 + popsize.
-        least = max(3 * simplices, 3 * budget.cma_popsize // 2 + 1)
-        if budget.search_episodes < least:
-            fail(f'{key}.search_episodes must be at least {least} (a third for Nelder-Mead: a simplex of '
-                 f'{2 * joints + 1} points for each of the {len(SEARCH_START_OMEGAS)} ω-rule starts; the rest for '
-                 f'the CMA-ES start and one population of {budget.cma_popsize}), got {budget.search_episodes}')
+        if budget.de_popsize < 2:
+            fail(f'{key}.de_popsize must be at least 2, got {budget.de_popsize}')
+        for part, value, least in (('search_episodes', budget.search_episodes, search_least),
+                                   ('robust_episodes', budget.robust_episodes, (search_least + 1) * scenarios),
+                                   ('pareto_episodes', budget.pareto_episodes, 2 + DEFAULT_POPULATION)):
+            if value < least:
+                fail(f'{key}.{part} must be at least {least}, got {value}')
         if not budget.taus:
             fail(f'{key}.taus must hold at least one τ')
 
