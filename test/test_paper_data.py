@@ -243,7 +243,7 @@ def results_json() -> dict:
     gains = [{'name': f'{controller}-{index}-traj{t}-T{d:g}-dt{p:g}', 'controller': controller, 'index': index,
               'trajectory': t, 'T': d, 'period': p, 'delay': delay, 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
               'search': {'episodes': 30, 'wall_time_s': 0.5, 'episodes_per_s': 60.0, 'in_process_index': 0.1,
-                         'start_index': float('inf'), 'method': 'global',
+                         'start_index': float('inf'), 'method': 'global', 'evolution_generations': 3,
                          'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
                                       {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
                                        'stopped_by': ['budget']}],

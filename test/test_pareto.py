@@ -16,7 +16,8 @@ from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.ros.interface import flat_parameters, given_gains
 from ddarm.tuning.methods import DEFAULT_METHOD
-from ddarm.tuning.pareto import ParetoError, pareto_front, spread_points
+from ddarm.tuning.methods import ParetoError
+from ddarm.tuning.pareto import pareto_front, spread_points
 from ddarm.tuning.tune import tune, with_gains
 
 # The paper's arm and trajectory 1 over half its T, small budgets: a front in a few seconds.

@@ -60,7 +60,7 @@ def synthetic_results(scores: dict) -> dict:
               'period': 0.01, 'delay': DELAYS[controller], 'kp': list(GAINS[controller][0]),
               'kv': list(GAINS[controller][1]),
               'search': {'episodes': 600, 'wall_time_s': 0.5, 'episodes_per_s': 1200.0, 'in_process_index': 0.1,
-                         'start_index': 4.0, 'method': 'global',
+                         'start_index': 4.0, 'method': 'global', 'evolution_generations': 3,
                          'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
                                       {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
                                        'stopped_by': ['budget']}],

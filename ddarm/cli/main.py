@@ -25,10 +25,7 @@ from ddarm.cli.pareto import add_pareto_parser
 from ddarm.cli.stability import add_stability_parser
 from ddarm.cli.motion import add_motion_parser
 from ddarm.interrupts import Interrupted, stop_on_signals
-from ddarm.tuning.methods import DEFAULT_METHOD, METHODS
-
-# Enough for the global search's first restart to converge and a few more to test its basin on a 6-joint arm.
-DEFAULT_TUNE_BUDGET = 6000
+from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,14 +64,14 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument('--index', type=index_name, required=True, metavar='{I1,I2,I}',
                       help='the index minimised: I1 (2.5), I2, or I = I1 + I2 (3.2); 2.5 and 3.2 also name them')
     tune.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD,
-                      help='global: IPOP-CMA-ES restarts then a Nelder-Mead polish (default); nelder-mead: '
+                      help='global: differential evolution, then local CMA-ES runs (default); nelder-mead: '
                            'multi-start Nelder-Mead from the ω-rule gains (the paper-style local search); cma: '
                            'one CMA-ES run from the best ω-rule start')
     tune.add_argument('--budget', type=int, default=DEFAULT_TUNE_BUDGET,
                       help=f'most episodes evaluated ({DEFAULT_TUNE_BUDGET})')
     tune.add_argument('--omegas', type=finite, nargs='+', default=list(SEARCH_START_OMEGAS),
                       metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
-    tune.add_argument('--seed', type=int, default=0, help="CMA-ES's random seed (0)")
+    tune.add_argument('--seed', type=int, default=0, help='random seed of DE and CMA-ES (0)')
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     add_robust_arguments(tune)
     add_output_arguments(tune)

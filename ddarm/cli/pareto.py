@@ -17,11 +17,11 @@ from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.spec import arm_joints, check_episode
 from ddarm.recording.bags import BagError, checked_output_path
 from ddarm.reporting.progress import Progress
-from ddarm.tuning.methods import DEFAULT_METHOD, METHODS
-from ddarm.tuning.pareto import DEFAULT_BUDGET, DEFAULT_POINTS, DEFAULT_POPULATION, ParetoError
+from ddarm.tuning.methods import (DEFAULT_BUDGET, DEFAULT_METHOD, DEFAULT_POINTS, DEFAULT_POPULATION,
+                                  DEFAULT_TUNE_BUDGET, METHODS, ParetoError)
 
 # Episodes of each single-index search: `ddarm tune`'s default budget.
-SEED_BUDGET = 6000
+SEED_BUDGET = DEFAULT_TUNE_BUDGET
 # The indices whose optima seed the front: (2.5), the front's one end, and (3.2), a point on it.
 SEED_INDICES = ('I1', 'I')
 
@@ -72,13 +72,13 @@ def _check_counts(args: argparse.Namespace) -> None:
 def _seed_search_note(tuning, budget: int) -> str | None:
     """What stopped a single-index search, when it may have been the budget rather than convergence.
 
-    The global search spends its whole budget by design: its confidence figure is how many of its
-    CMA-ES restarts reached within 1 % of the optimum. The others stop on convergence or before a batch
+    The global search's confidence figure is how many of its local CMA-ES runs reached within 1 % of the
+    optimum, whether they stopped on convergence or at the budget. The others stop on convergence or before a batch
     that would exceed the budget, and none asks for more than S (2n + 1) points at once (S starts, n joints):
     with less than that left, the stop may have been the budget's."""
     search = tuning.search
     if search.restarts:
-        return f'{search.restarts_within(0.01)} of its {len(search.restarts)} restarts reached it within 1 %'
+        return f'{search.restarts_within(0.01)} of its {len(search.restarts)} local runs reached it within 1 %'
     largest_batch = len(tuning.start_omegas) * (2 * len(search.kp) + 1)
     if budget - search.episodes < largest_batch:
         return f'its search spent the budget, {search.episodes} of {budget} episodes: it may not have converged'

@@ -109,10 +109,14 @@ def check_through_graph(run, spec, storage: str) -> dict:
 
 
 def print_tuning(report: dict, tuning) -> None:
+    from ddarm.tuning.report import local_runs_text
+
     print(f"{report['controller']}, index ({report['index']}), {report['method']}: {tuning.search.episodes} "
           f"episodes in {tuning.wall_time_s:.2f} s ({tuning.episodes_per_s:.0f} episodes/s)")
     print(f"  starts (ω rules {format_vector(tuning.start_omegas)}): {report['index']} = "
           f"{format_vector(tuning.start_indices)}")
+    if report['restarts']:
+        print(f'  {local_runs_text(report)}')
     width = max(len(name) for name in report['joint_names'])
     for name, gains in report['gains'].items():
         print(f"  {name:<{width}}  kp = {gains['p']:.6g}  kv = {gains['d']:.6g}")

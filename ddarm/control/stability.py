@@ -31,6 +31,11 @@ from scipy.optimize import brentq
 from ddarm.errors import DdarmError
 
 
+# The damping ratios whose boundary keeps its printed digits: below, the crossing near z = -1 lies closer to θ = π
+# than brentq resolves in θ (ωΔ* ≈ 4ζ for d = 0); far above, ζ² overflows.
+ZETA_RANGE = (1e-6, 1e6)
+
+
 class StabilityError(DdarmError, ValueError):
     """A delay, damping, period or arm the stability boundary cannot be computed for."""
 
@@ -38,8 +43,8 @@ class StabilityError(DdarmError, ValueError):
 def _checked(delay, zeta) -> tuple[int, float]:
     if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or delay < 0:
         raise StabilityError(f'delay must be a whole number of samples >= 0, got {delay!r}')
-    if not (np.isfinite(zeta) and zeta > 0):
-        raise StabilityError(f'zeta must be finite and positive, got {zeta!r}')
+    if not (np.isfinite(zeta) and ZETA_RANGE[0] <= zeta <= ZETA_RANGE[1]):
+        raise StabilityError(f'zeta must be within [{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}], got {float(zeta):g}')
     return int(delay), float(zeta)
 
 

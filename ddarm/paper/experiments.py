@@ -53,7 +53,8 @@ def _search_record(result, wall: float, start_count: int) -> Search:
                            stopped_by=restart.stopped_by) for restart in result.restarts]
     return Search(episodes=result.episodes, wall_time_s=wall, episodes_per_s=result.episodes / wall,
                   in_process_index=result.index, start_index=float(np.min(result.history_index[:start_count])),
-                  method=result.method, restarts=restarts, restarts_within_1_percent=result.restarts_within(0.01))
+                  method=result.method, evolution_generations=result.evolution_generations, restarts=restarts,
+                  restarts_within_1_percent=result.restarts_within(0.01))
 
 
 def optimise(template: EpisodeSpec, index: str, budget: Budget, progress=None) -> GainSet:
@@ -150,7 +151,8 @@ class Reproduction:
             controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
             delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()),
             kv=tuple(result.kv.tolist()), nominal=nominal.name,
-            search=_search_record(result, time.perf_counter() - started, len(start_kp)), rows=[])
+            # The ω-rule starts come first; the last start is the nominal optimum.
+            search=_search_record(result, time.perf_counter() - started, len(start_kp) - 1), rows=[])
         self.results.stability_map = [
             BoundaryRow(delay=delay, zeta=zeta, omega_delta=boundary_omega_delta(delay, zeta))
             for delay in beyond.stability_map.delays for zeta in beyond.stability_map.zetas]
@@ -175,7 +177,7 @@ class Reproduction:
                 self.progress(f'robust: {name} gains at τ = {scenario.tau}, mass scale {scenario.mass_scale}')
                 scale = '-'.join(f'{value:g}' for value in scenario.mass_scale)
                 row = self._episode(recorder, with_gains(scenario, kp, kv),
-                                    f'robust-{name}-tau{scenario.tau:.2f}-mass{scale}')
+                                    f'robust-{name}-tau{scenario.tau:g}-mass{scale}')
                 rows.append(ScenarioRow(tau=scenario.tau, mass_scale=tuple(scenario.mass_scale), gains=name,
                                         I1=row['I1'], I2=row['I2'], I=row['I'], diverged=row['diverged'],
                                         bag=row['bag']))

@@ -193,7 +193,6 @@ def table4_figure(path: Path, results: Results) -> None:
 
 # The stability map's damping axis: around the ω rules' ζ = 1, through the d = 0 corner at ζ = 1/2.
 STABILITY_ZETAS = np.linspace(0.3, 2.0, 171)
-STABILITY_DELAYS = (0, 1, 2)
 
 
 def stability_figure(path: Path, results: Results, settings: PaperSettings) -> None:
@@ -208,7 +207,7 @@ def stability_figure(path: Path, results: Results, settings: PaperSettings) -> N
     axis = figure.subplots()
     axis.set_yscale('log')
     styles = ('--', '-.', ':')
-    for d in sorted({*STABILITY_DELAYS, delay}):
+    for d in sorted({*settings.beyond.stability_map.delays, delay}):
         boundary = [boundary_omega_delta(d, zeta) for zeta in STABILITY_ZETAS]
         if d == delay:
             axis.fill_between(STABILITY_ZETAS, bottom, boundary, color='tab:green', alpha=0.08, linewidth=0)

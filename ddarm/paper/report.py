@@ -106,7 +106,8 @@ Table 4 as bars: I1 (lower part) and I2 (upper part) stacked to I, ours beside t
 ![Stability map](figures/stability.png)
 
 The stability map of computed torque with an exact model: the boundary ωΔ* against the damping ratio ζ for
-d = 0, 1, 2 (the region below each curve is stable), the paper's operating point (ζ = 1, ω = {omega:g} rad/s at
+d = {', '.join(str(d) for d in sorted({*settings.beyond.stability_map.delays, delay}))} (the region below each
+curve is stable), the paper's operating point (ζ = 1, ω = {omega:g} rad/s at
 its claimed Δ, delay {delay}) as a point, and the recorded episodes at ω = {omega:g} for each Δ at their own ωΔ,
 marked by how they ended.
 """

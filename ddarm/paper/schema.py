@@ -45,7 +45,7 @@ class RunSettings:
 class RestartRow:
     """One CMA-ES run of a global search (ddarm.tuning.search.Restart)."""
 
-    start: str  # 'ω rule' or 'random'
+    start: str  # the point it started from, e.g. 'point 1 seen (0.123839)'
     popsize: int
     episodes: int
     index: float | None  # its best index; None when every episode of the run diverged
@@ -60,6 +60,7 @@ class Search:
     in_process_index: float
     start_index: float  # the best ω-rule start's index
     method: str
+    evolution_generations: int  # differential evolution's generations before the local runs
     restarts: list[RestartRow]
     restarts_within_1_percent: int  # the runs whose best is within 1 % of in_process_index: a confidence figure
 

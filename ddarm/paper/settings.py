@@ -30,7 +30,7 @@ from ddarm.errors import DdarmError
 from ddarm.motion.files import DataLoader
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints
 from ddarm.paper import typed
-from ddarm.tuning.pareto import DEFAULT_POPULATION
+from ddarm.tuning.methods import DEFAULT_POPULATION
 from ddarm.tuning.procedures import steady_state_error_per_unit_gain
 from ddarm.tuning.search import LOCAL_POPSIZE
 

@@ -226,10 +226,10 @@ def gains(results: Results, cells: Cells) -> str:
                                for restart in search.restarts)])
     return f"""## Optimised gains
 
-Every search ran in-process through the batch engine: a global search (CMA-ES runs side by side, the first
-from the best of section 2's ω-rule gains, the others from random gains around them, each run that stops
-replaced by one with twice its population, then a polish of the best point). "start" is the best ω-rule start's index; "runs within 1 %" counts the runs whose
-own best came within 1 % of the optimum, a confidence figure: several independent runs finding the same basin
+Every search ran in-process through the batch engine: a global search (differential evolution over a box
+around section 2's ω-rule gains, then local CMA-ES runs from the best distinct points it saw). "start" is the
+best ω-rule start's index; "runs within 1 %" counts the local runs whose own best came within 1 % of the
+optimum, a confidence figure: several independent runs finding the same basin
 make a better one unlikely, one alone says the landscape has basins the others missed. Beside its optimum, the
 same gains' index scored from the bag of their undisturbed ROS episode (τ = 0, torque unlimited, from Tables
 2-4): the two should agree.

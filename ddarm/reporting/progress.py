@@ -61,7 +61,7 @@ class Progress:
         self.closed = True
         if self._bar is not None:
             self._bar.close()
-        else:
+        elif self.done:  # a command refused before its first batch shows no progress line
             self._write_line(final=True)
 
     def __enter__(self) -> Progress:

@@ -109,8 +109,16 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
+    executors = []
+
+    def make_executor_and_node():
+        # The executor before the node: once the node's services are on the graph, a Ctrl-C may come at once
+        # (a test, a launch file), and by then rclpy's handler has shut the context down that a new executor needs.
+        executors.append(SingleThreadedExecutor())
+        return make_node()
+
     def spin(node) -> int:
-        executor = SingleThreadedExecutor(context=node.context)
+        executor = executors[0]
         executor.add_node(node)
         try:
             # Bounded waits, not rclpy.spin's endless one: a node with no timer (a controller in state
@@ -122,10 +130,13 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
             print(f'{name}: refused to start: {error}', flush=True)
             return REFUSED
         finally:
-            executor.shutdown()
+            executor.shutdown()  # before the node is destroyed and the context shut down
         return 0
 
     try:
-        return run_executable(name, make_node, refusals, args, spin)
+        return run_executable(name, make_executor_and_node, refusals, args, spin)
     except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C or SIGTERM (rclpy's handlers), or shutdown
         return 0
+    finally:
+        for executor in executors:  # a node refused before it spun (shutting down twice does nothing)
+            executor.shutdown()

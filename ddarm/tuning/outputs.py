@@ -107,6 +107,7 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
         'restarts': [{**dataclasses.asdict(restart), 'index': restart.index if np.isfinite(restart.index) else None}
                      for restart in tuning.search.restarts],
         'restarts_within_1_percent': tuning.search.restarts_within(0.01) if tuning.search.restarts else None,
+        'evolution_generations': tuning.search.evolution_generations,
         'spec': best_spec.to_dict(), 'command': run.summary['command'],
         'joint_names': scored['joint_names'],
         'gains': {name: {'p': p, 'd': d} for name, p, d in zip(scored['joint_names'], tuning.search.kp.tolist(),

@@ -49,8 +49,8 @@ from pymoo.util.nds.non_dominated_sorting import NonDominatedSorting
 
 from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.spec import EpisodeSpec, plan_episode
-from ddarm.errors import DdarmError
 from ddarm.interrupts import check_stop
+from ddarm.tuning.methods import DEFAULT_BUDGET, DEFAULT_POINTS, DEFAULT_POPULATION, DEFAULT_SEARCHES, ParetoError
 from ddarm.tuning.search import DIVERGED_PENALTY, GAIN_RANGE, omega_starts
 
 # pymoo prints a hint to stdout when its compiled modules are missing; the core prints nothing.
@@ -62,13 +62,6 @@ METHOD = 'NSGA-II (pymoo) + scalarised CMA-ES refinement, over log gains, on an 
 START_OMEGAS = (1.0, 2.0, 4.0, 8.0, 12.0, 15.0, 20.0, 30.0, 40.0, 60.0)
 # Spread, in log gain, of the perturbed starts that fill the first population.
 START_SPREAD = 1.0
-# On the paper's arm (computed torque, trajectory 1), about 20 s of episodes at the engine's throughput in
-# batches of a few hundred; its front then lies within about 0.5 % (mean, in I1 or I2) of the best front known
-# from several times the budget.
-DEFAULT_BUDGET = 20_000
-DEFAULT_POPULATION = 100
-DEFAULT_SEARCHES = 32
-DEFAULT_POINTS = 40
 # Part of the budget the seeds and NSGA-II may spend; the refinement spends the rest. On the paper's arm, more
 # refinement gave fronts closer to the best known than an even split or NSGA-II alone, at the same budget.
 EXPLORATION_SHARE = 0.3
@@ -83,9 +76,6 @@ CHEBYSHEV_AUGMENTATION = 1e-3
 # The logarithm's floor, for an index that is exactly 0.
 SMALLEST_INDEX = 1e-300
 
-
-class ParetoError(DdarmError, ValueError):
-    """A Pareto-front specification that cannot be run, or a run that found no bounded episode."""
 
 
 @dataclass(frozen=True)

@@ -100,6 +100,15 @@ def robustness_section(robust: dict, index: str, joints: list[str]) -> list[str]
     return lines
 
 
+def local_runs_text(report: dict) -> str:
+    """The global search's confidence figure, from `ddarm tune`'s report: its local runs' bests and how many reached."""
+    bests = ', '.join('diverged' if restart['index'] is None else f"{restart['index']:.6g}"
+                      for restart in report['restarts'])
+    return (f"differential evolution ({report['evolution_generations']} generations), then {len(report['restarts'])} "
+            f"local runs, best {report['index']} = {bests}: {report['restarts_within_1_percent']} within 1 % of the "
+            'best')
+
+
 def write_tuning_report(run: RunFolder, report: dict) -> Path:
     """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence.
 
@@ -121,6 +130,7 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
              f"({report['episodes_per_s']:.0f} episodes/s), best "
              + (f"{report['robust']['objective']} {report['index']} over the scenarios" if 'robust' in report
                 else report['index']) + f" = {report['search_index']:.9g}",
+             *([f"- {local_runs_text(report)}"] if report['restarts'] else []),
              '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
     lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, report['kp'], report['kv'])]
     if 'robust' in report:

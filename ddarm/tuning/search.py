@@ -68,7 +68,7 @@ class SearchError(DdarmError, ValueError):
 class Restart:
     """One local CMA-ES run of the global search: where it started, its population, what it found, why it stopped."""
 
-    start: str  # the DE member it started from: its rank and its value
+    start: str  # the point it started from: its rank among the points seen and its value
     popsize: int
     episodes: int
     index: float  # its best index, +inf if all its episodes diverged
@@ -96,6 +96,7 @@ class SearchResult:
     history_index: np.ndarray
     history_batch: np.ndarray
     restarts: tuple[Restart, ...] = ()
+    evolution_generations: int = 0  # the global search's DE generations; 0: the budget left no room for DE
 
     def best_so_far(self) -> np.ndarray:
         """The best index after each episode: the optimiser's progress."""
@@ -185,7 +186,8 @@ class _Objective:
         points = np.log(np.concatenate([np.concatenate([record[0], record[1]], axis=1) for record in self.records]))
         return points, np.concatenate([record[2] for record in self.records])
 
-    def result(self, method: str, index_name: str, restarts: tuple[Restart, ...] = ()) -> SearchResult:
+    def result(self, method: str, index_name: str, restarts: tuple[Restart, ...] = (),
+               evolution_generations: int = 0) -> SearchResult:
         dof = len(self.best_point) // 2
         gains = np.exp(self.best_point)
         kp_history = np.concatenate([record[0] for record in self.records])
@@ -196,7 +198,7 @@ class _Objective:
             history_kv=np.concatenate([record[1] for record in self.records]),
             history_index=np.concatenate([record[2] for record in self.records]),
             history_batch=np.concatenate([np.full(len(record[0]), record[3]) for record in self.records]),
-            restarts=restarts)
+            restarts=restarts, evolution_generations=evolution_generations)
 
 
 def omega_starts(template: EpisodeSpec, omegas) -> tuple[np.ndarray, np.ndarray]:
@@ -250,12 +252,13 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
     The result is a pure function of the arguments. Raises SearchError for a bad specification (check_search).
     """
     starts = check_search(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget,
-                          method=method, step=step, popsize=popsize, scenarios=scenarios, aggregate=aggregate)
+                          method=method, step=step, popsize=popsize, scenarios=scenarios, aggregate=aggregate,
+                          seed=seed)
     objective = _Objective(template, index, int(budget), progress, None if scenarios is None else tuple(scenarios),
                            aggregate)
     if method == 'global':
-        restarts = _global(objective, starts, seed, DE_POPSIZE if popsize is None else int(popsize))
-        return objective.result(method, index, restarts)
+        restarts, generations = _global(objective, starts, seed, DE_POPSIZE if popsize is None else int(popsize))
+        return objective.result(method, index, restarts, generations)
     if method == 'nelder-mead':
         _nelder_mead(objective, starts, step)
     else:
@@ -265,7 +268,8 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
 
 def check_search(template: EpisodeSpec, *, index: str, start_kp, start_kv, budget: int,
                  method: str = 'nelder-mead', step: float = 0.5, popsize: int | None = None,
-                 scenarios: tuple[EpisodeSpec, ...] | None = None, aggregate: str = 'worst') -> np.ndarray:
+                 scenarios: tuple[EpisodeSpec, ...] | None = None, aggregate: str = 'worst',
+                 seed: int = 0) -> np.ndarray:
     """Refuse, with SearchError naming the argument, a search that search_gains (same arguments) cannot run.
 
     Returns the start points, (S, 2n) in log gain. No episode is run.
@@ -276,6 +280,8 @@ def check_search(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
         raise SearchError(f'method must be one of {METHODS}, got {method!r}')
     if not (np.isfinite(step) and step > 0):
         raise SearchError(f'step must be finite and positive, got {step!r}')
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SearchError(f'seed must be a whole number >= 0, got {seed!r}')
     if popsize is not None and (isinstance(popsize, bool) or not isinstance(popsize, (int, np.integer))
                                 or popsize < 2):
         raise SearchError(f'popsize must be a whole number of at least 2, got {popsize!r}')
@@ -293,7 +299,7 @@ def check_search(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
     count = 1 if scenarios is None else len(scenarios)
     starts = _start_points(start_kp, start_kv)
     minimum = len(starts) * (starts.shape[1] + 1) if method == 'nelder-mead' else len(starts)
-    if method == 'global':  # the starts, a first population and a polishing simplex
+    if method == 'global':  # the starts and one local population
         minimum = len(starts) + LOCAL_POPSIZE
     if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < minimum * count:
         raise SearchError(f'budget must be a whole number of at least {minimum * count} episodes '
@@ -342,7 +348,7 @@ class _Run:
         return Restart(self.origin, self.strategy.popsize, self.episodes, self.index, stopped_by)
 
 
-def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) -> tuple[Restart, ...]:
+def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) -> tuple[tuple[Restart, ...], int]:
     """Differential evolution over `search_box`, then local CMA-ES runs from its LOCAL_RUNS best distinct members.
 
     DE (scipy's: best1bin, Latin hypercube initialisation, the best start among its members) gets 1 - LOCAL_SHARE of
@@ -357,13 +363,15 @@ def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) 
     values = objective(starts)
     low, high = search_box(starts)
     dimension = starts.shape[1]
-    members = popsize * dimension
+    members = max(5, popsize * dimension)  # scipy's own population size
     generations = int((1.0 - LOCAL_SHARE) * objective.remaining) // members - 1
+    evolution_generations = 0
     if generations >= 1:
-        scipy.optimize.differential_evolution(
+        evolution = scipy.optimize.differential_evolution(
             lambda population: objective(population.T), list(zip(low, high)), vectorized=True,
             updating='deferred', popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False,
             x0=starts[int(np.argmin(values))], rng=rng)
+        evolution_generations = int(evolution.nit)
     # The local runs start from the best points seen, DISTINCT apart: DE's last population often sits in one
     # basin, where the points it passed on the way may mark deeper ones close by.
     points, energies = objective.history_points()
@@ -376,6 +384,9 @@ def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) 
         if len(chosen) == LOCAL_RUNS:
             break
     origins = [f'point {rank + 1} seen ({energies[member]:.6g})' for rank, member in enumerate(chosen)]
+    # As many runs as the budget has room for a population of each: a run that never ran is no confidence figure.
+    room = max(1, objective.remaining // LOCAL_POPSIZE)
+    origins, chosen = origins[:room], chosen[:room]
     runs = [_Run(origin, points[member], LOCAL_POPSIZE, rng) for origin, member in zip(origins, chosen)]
     finished = []
     while runs:
@@ -392,7 +403,8 @@ def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) 
             if run.strategy.stop():
                 finished.append(run.restart(tuple(run.strategy.stop())))
                 runs.remove(run)
-    return tuple(sorted(finished, key=lambda restart: origins.index(restart.start)))
+    ran = [restart for restart in finished if restart.episodes > 0]
+    return tuple(sorted(ran, key=lambda restart: origins.index(restart.start))), evolution_generations
 
 
 def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, popsize: int | None) -> None:

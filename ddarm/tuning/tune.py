@@ -11,7 +11,7 @@ from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.tuning.robust import ScenarioScores, scenario_record, scenario_scores
-from ddarm.tuning.search import SearchResult, check_search, omega_starts, search_gains
+from ddarm.tuning.search import SearchError, SearchResult, check_search, omega_starts, search_gains
 
 
 @dataclass(frozen=True)
@@ -84,12 +84,20 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
         start_kp, start_kv = np.vstack([start_kp, nominal.kp]), np.vstack([start_kv, nominal.kv])
     result, wall = _timed_search(template, start_kp=start_kp, start_kv=start_kv, seed=seed, progress=progress,
                                  scenarios=scenarios, aggregate=aggregate, **search)
+    if not np.isfinite(result.index):
+        raise SearchError(f'every gain set the search evaluated diverged{" in some scenario" if scenarios else ""} '
+                          f'({result.episodes} episodes): no gains to report; check the episode (limits, '
+                          'disturbances) or give start gains nearer a stable loop (--omegas)')
     robust = None if scenarios is None else Robustness(
         tuple(scenarios), aggregate, scenario_scores(scenarios, result.kp, result.kv, index),
         scenario_scores(scenarios, nominal.kp, nominal.kv, index), nominal, nominal_wall)
     episode = run_episode(with_gains(template, result.kp, result.kv))
-    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(),
-                  episode.plan.warnings, robust)
+    warnings = episode.plan.warnings
+    if method == 'global' and result.evolution_generations == 0:
+        warnings += (f'the budget ({budget} episodes{f" over {len(scenarios)} scenarios" if scenarios else ""}) left '
+                     'no room for differential evolution: only local runs from the starts searched, so better '
+                     'basins may have been missed; raise --budget',)
+    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust)
 
 
 def _timed_search(template: EpisodeSpec, **arguments) -> tuple[SearchResult, float]:
