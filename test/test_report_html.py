@@ -185,7 +185,9 @@ def test_a_tuning_writes_report_html_beside_report_md(browser, tmp_path, monkeyp
     monkeypatch.setattr(ddarm.tuning.report, 'episode_figure', lambda path, bag, title: draw_png(path, 4))
     joints = ['joint1', 'joint2', 'joint3']
     indices = {'I1': 0.1, 'I2': 0.2, 'I': 0.3}
-    report = {'controller': 'computed_torque', 'index': 'I', 'method': 'nelder-mead', 'command': 'ddarm tune',
+    report = {'controller': 'computed_torque', 'index': 'I', 'method': 'global', 'command': 'ddarm tune',
+              'restarts': [{'start': 'point 1 seen (0.31)', 'popsize': 16, 'episodes': 64, 'index': 0.3,
+                            'stopped_by': ['tolx']}], 'restarts_within_1_percent': 1, 'evolution_generations': 2,
               'spec': {'urdf': None, 'model_urdf': None, 'motion': None, 'trajectory': 1, 'duration': 1.0,
                        'period': 0.01, 'delay': 1, 'tau': 0.0, 'torque_limit': None},
               'joint_names': joints, 'kp': [900.0] * 3, 'kv': [60.0] * 3, 'episodes': 150, 'wall_time_s': 0.5,
