@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
 
 REFUSED = 2  # the exit code of a node that refused to start
-SIGNAL_CHECK_PERIOD_S = 0.2  # the longest a spinning node waits in rcl before it sees a pending Ctrl-C
+SIGNAL_CHECK_PERIOD_S = 0.2  # the longest a spinning node waits in rcl before its signal handlers run
 # The arguments each context was initialised with by `run_executable` (rclpy keeps no public copy).
 _ARGUMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -108,6 +108,9 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
     """
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from ddarm.interrupts import Interrupted, stop_on_signals
 
     executors = []
 
@@ -121,9 +124,8 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
         executor = executors[0]
         executor.add_node(node)
         try:
-            # Bounded waits, not rclpy.spin's endless one: a node with no timer (a controller in state
-            # sampling) otherwise sometimes sleeps through Ctrl-C in rcl_wait, the executor's SIGINT guard
-            # condition not waking it; back in Python between waits, the KeyboardInterrupt is raised.
+            # Bounded waits, not rclpy.spin's endless one: between them the process is back in Python, where
+            # its own SIGINT and SIGTERM handlers run (a node with no timer slept through rclpy's in rcl_wait).
             while node.context.ok():
                 executor.spin_once(timeout_sec=SIGNAL_CHECK_PERIOD_S)
         except (*refusals, ParameterException, ParameterFileError) as error:
@@ -134,8 +136,12 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
         return 0
 
     try:
-        return run_executable(name, make_executor_and_node, refusals, args, spin)
-    except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C or SIGTERM (rclpy's handlers), or shutdown
+        # Python's handlers, not rclpy's: a node with no timer sometimes never heard rclpy's SIGINT (its guard
+        # condition did not wake the wait, and no KeyboardInterrupt followed) and outlived Ctrl-C.
+        with stop_on_signals():
+            return run_executable(name, make_executor_and_node, refusals, args, spin,
+                                  signal_handler_options=SignalHandlerOptions.NO)
+    except (Interrupted, KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C, SIGTERM, or a shutdown
         return 0
     finally:
         for executor in executors:  # a node refused before it spun (shutting down twice does nothing)
