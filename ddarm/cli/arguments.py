@@ -21,9 +21,8 @@ def finite(text: str) -> float:
     return value
 
 
-def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
-    """The options that define an episode (the spec's defaults, §14); `gains` adds --omega / --kp --kv."""
-    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+def add_arm_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that name the arm and its motion: --urdf, --model-urdf, and --trajectory or --motion."""
     parser.add_argument('--urdf', metavar='FILE', help="the plant's arm (default: the paper's, config/ddarm.urdf)")
     parser.add_argument('--model-urdf', metavar='FILE',
                         help="the controller's model of the arm, when it differs from the plant (default: --urdf)")
@@ -32,6 +31,12 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
                         help="the paper's motion (default 1, without --motion)")
     motion.add_argument('--motion', metavar='FILE.yaml',
                         help='a motion file: the controlled joints and their motion (the others are locked)')
+
+
+def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
+    """The options that define an episode (the spec's defaults, §14); `gains` adds --omega / --kp --kv."""
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    add_arm_arguments(parser)
     parser.add_argument('--duration', type=finite, metavar='T',
                         help="T in s (default: the motion's; the paper's is 1); a bang-bang motion is stretched to "
                              "T, waypoints are held after their last point")

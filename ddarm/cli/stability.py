@@ -7,11 +7,10 @@ import json
 
 import numpy as np
 
-from ddarm.cli.arguments import absolute_path
+from ddarm.cli.arguments import absolute_path, add_arm_arguments
 from ddarm.cli.output import format_vector
 from ddarm.control.laws import MAX_DELAY
 from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, modal_gains
-from ddarm.motion.programmed import PAPER_TRAJECTORIES
 
 ARM_OPTIONS = ('urdf', 'model_urdf', 'trajectory', 'motion')
 
@@ -103,12 +102,6 @@ def add_stability_parser(commands) -> None:
                            help='computed torque with an exact model, or PD + gravity linearised at the goal q_f '
                                 "with the arm's inertia (computed_torque)")
     stability.add_argument('--period', type=_positive, metavar='DT', help='also ω* = ωΔ*/Δ for this Δ in s')
-    stability.add_argument('--urdf', metavar='FILE', help="PD + gravity's arm (default: the paper's)")
-    stability.add_argument('--model-urdf', metavar='FILE',
-                           help="the controller's model, whose m_ii the ω rule takes (default: --urdf)")
-    motion = stability.add_mutually_exclusive_group()
-    motion.add_argument('--trajectory', type=int, choices=PAPER_TRAJECTORIES,
-                        help="the paper's motion whose goal q_f PD + gravity is linearised at (default 1)")
-    motion.add_argument('--motion', metavar='FILE.yaml', help='a motion file whose goal q_f is taken')
+    add_arm_arguments(stability)  # PD + gravity's arm: linearised at the motion's goal q_f, m_ii from the model
     stability.add_argument('--json', action='store_true', help='print one JSON object')
     stability.set_defaults(handler=command_stability)
