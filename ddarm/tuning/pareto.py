@@ -51,7 +51,7 @@ from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.spec import EpisodeSpec, plan_episode
 from ddarm.interrupts import check_stop
 from ddarm.tuning.methods import DEFAULT_BUDGET, DEFAULT_POINTS, DEFAULT_POPULATION, DEFAULT_SEARCHES, ParetoError
-from ddarm.tuning.search import DIVERGED_PENALTY, GAIN_RANGE, omega_starts
+from ddarm.tuning.search import DIVERGED_PENALTY, GAIN_RANGE, cma_options, omega_starts
 
 # pymoo prints a hint to stdout when its compiled modules are missing; the core prints nothing.
 Config.warnings['not_compiled'] = False
@@ -284,14 +284,8 @@ def _refine(archive: _Archive, searches: int, seed: int) -> tuple[int, int]:
     until all converge or the next generation would exceed the budget. Returns (searches run, converged)."""
     front_log = _log_indices(archive.indices)
     least_I = int(np.argmin(archive.indices.sum(axis=1)))
-    low, high = np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])
     rng = np.random.default_rng(seed)
-    options = {
-        'bounds': [low, high], 'tolx': SEARCH_XTOL,
-        # Draws from a private generator: NaN keeps cma from seeding NumPy's global one.
-        'randn': lambda *shape: rng.standard_normal(shape), 'seed': np.nan,
-        'verbose': -9, 'verb_log': 0, 'verb_disp': 0,
-    }
+    options = cma_options(rng, tolx=SEARCH_XTOL)
     last = len(archive.indices) - 1
     # The ends and the least-I point minimise the single indices; the others their Chebyshev distance.
     searched = [(0, _Scalarisation('I1')), (last, _Scalarisation('I2')), (least_I, _Scalarisation('I'))]

@@ -321,13 +321,19 @@ def search_box(starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return low, np.minimum(starts.max(axis=0) + widening, np.log(GAIN_RANGE[1]))
 
 
-def _cma_options(popsize: int, rng) -> dict:
-    return {
-        'bounds': [np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])], 'popsize': popsize, 'tolx': CMA_XTOL,
+def cma_options(rng, popsize: int | None = None, tolx: float | None = None) -> dict:
+    """cma's options for a search over log gains: GAIN_RANGE, draws from `rng`, silent; cma's defaults unless given."""
+    options = {
+        'bounds': [np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])],
         # Draws from a private generator: NaN keeps cma from seeding NumPy's global one.
         'randn': lambda *shape: rng.standard_normal(shape), 'seed': np.nan,
         'verbose': -9, 'verb_log': 0, 'verb_disp': 0,
     }
+    if popsize is not None:
+        options['popsize'] = int(popsize)
+    if tolx is not None:
+        options['tolx'] = tolx
+    return options
 
 
 class _Run:
@@ -335,7 +341,7 @@ class _Run:
 
     def __init__(self, origin: str, start: np.ndarray, popsize: int, rng) -> None:
         self.origin = origin
-        self.strategy = cma.CMAEvolutionStrategy(start, LOCAL_SIGMA, _cma_options(popsize, rng))
+        self.strategy = cma.CMAEvolutionStrategy(start, LOCAL_SIGMA, cma_options(rng, popsize, CMA_XTOL))
         self.episodes, self.index = 0, np.inf
 
     def tell(self, population, values: np.ndarray, episodes: int) -> None:
@@ -411,15 +417,7 @@ def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, pops
     """CMA-ES (the `cma` package) from the best start, one batch call per population."""
     values = objective(starts)
     rng = np.random.default_rng(seed)
-    options = {
-        'bounds': [np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])],
-        # Draws from a private generator: NaN keeps cma from seeding NumPy's global one.
-        'randn': lambda *shape: rng.standard_normal(shape), 'seed': np.nan,
-        'verbose': -9, 'verb_log': 0, 'verb_disp': 0,
-    }
-    if popsize is not None:
-        options['popsize'] = int(popsize)
-    strategy = cma.CMAEvolutionStrategy(starts[int(np.argmin(values))], step, options)
+    strategy = cma.CMAEvolutionStrategy(starts[int(np.argmin(values))], step, cma_options(rng, popsize))
     while not strategy.stop() and strategy.popsize <= objective.remaining:
         population = strategy.ask()
         strategy.tell(population, objective(np.array(population)).tolist())
