@@ -34,6 +34,8 @@ setup(
         'ros-jazzy-common-interfaces==5.3.6',
         'pin==4.1.0',
         'rosbags==0.11.9',
+        # rosbags reads and writes bag metadata with ruamel.yaml: its C parser and emitter are 7 times as fast.
+        'ruamel.yaml.clib==0.2.15',
         'numpy==2.4.6',
         'scipy==1.17.1',
         'matplotlib==3.11.2',
