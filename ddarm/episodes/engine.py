@@ -42,6 +42,17 @@ class BatchError(DdarmError, ValueError):
     """Batch inputs the engine refuses."""
 
 
+_default_threads: int | None = None  # None: the cores this process may use
+
+
+def set_default_threads(threads: int | None) -> None:
+    """The threads a batch runs on when its caller names none: a worker process's share of the cores (None: all)."""
+    global _default_threads
+    if threads is not None and not (isinstance(threads, (int, np.integer)) and 1 <= threads <= MAX_THREADS):
+        raise BatchError(f'threads must be a whole number in [1, {MAX_THREADS}], got {threads!r}')
+    _default_threads = None if threads is None else int(threads)
+
+
 @numba.njit(**COMPILED)
 def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episode, plant, record, series, outcome):
     """Members start … start + lanes - 1 through the loop of spec §5, all samples in step.
@@ -166,7 +177,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     returns q, q̇, the commanded and the applied torque at every sample. `plan` (as from
     plan_episode or plan_motion) saves re-planning when the caller runs many batches of one
     template; per-member τ disturbs the plan's own motion. `threads` (default: the cores this
-    process may use) run the members in parallel.
+    process may use, or set_default_threads's) run the members in parallel.
 
     Raises BatchError (a ValueError) naming the problem, before anything is simulated.
     """
@@ -218,9 +229,13 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     episode = tuple(np.ascontiguousarray(array, dtype=float) for array in (
         plan.q_ref, plan.v_ref, plan.a_ref, gravity_ref, plan.nominal, error_weights(dof),
         torque_weights(plan.nominal), viscous_model, coulomb_model))
-    threads = min(threads if threads is not None else len(os.sched_getaffinity(0)), size)
-    # Chunks small enough that every thread gets one, large enough to amortise a compiled call.
-    lanes = min(LANES, -(-size // threads))
+    if threads is None:
+        threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
+    threads = min(threads, size)
+    # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
+    # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21, not 32 + 32 and 26.
+    chunks_per_thread = -(-size // (threads * LANES))
+    lanes = -(-size // (threads * chunks_per_thread))
     arguments = (lanes, chain.arrays(), model.arrays(), law.code, int(template.delay), np.array(plan.q0, dtype=float), members,
                  episode, compiled, series, (out_q, out_v, out_command, out_torque), outcome)
     if threads == 1:
