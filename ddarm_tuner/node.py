@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import yaml
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
@@ -15,6 +15,7 @@ from ddarm.control.laws import CONTROLLERS, MAX_DELAY
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.ros.executable import run_executable
+from ddarm.ros.executors import node_executor
 from ddarm.ros.interface import (descriptor, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
                                  undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
@@ -176,7 +177,7 @@ def main(args=None) -> int:
 
 def sweep(node: TunerNode, args) -> int:
     """The started tuner's sweep into a new run folder: 0 when it completed, 2 when it failed."""
-    executor = SingleThreadedExecutor()
+    executor = node_executor()
     try:
         executor.add_node(node)
         name = node.values['run_name'] or time.strftime('tuner-%Y%m%d-%H%M%S')

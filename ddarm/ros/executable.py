@@ -107,17 +107,18 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
     parameter file that rcl cannot parse or that configures no node of this name.
     """
     from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
     from ddarm.interrupts import Interrupted, stop_on_signals
+    from ddarm.ros.executors import node_executor
 
     executors = []
 
     def make_executor_and_node():
         # The executor before the node: once the node's services are on the graph, a Ctrl-C may come at once
         # (a test, a launch file), and by then rclpy's handler has shut the context down that a new executor needs.
-        executors.append(SingleThreadedExecutor())
+        executors.append(node_executor())
         return make_node()
 
     def spin(node) -> int:

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import rclpy
 import yaml
-from rclpy.executors import SingleThreadedExecutor
 
 from ddarm.control.laws import CONTROLLERS
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
+from ddarm.ros.executors import node_executor
 from ddarm.ros.lifetime import child_environment
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, arm_parameters, episode_record
@@ -57,7 +57,7 @@ class GraphSession:
         self.context = rclpy.Context()
         rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
         self.driver = GraphDriver(namespace=self.namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = node_executor(self.context)
         self.executor.add_node(self.driver)
         try:
             # The nodes run the compiled loop: built (or loaded from numba's cache) here first, so that
