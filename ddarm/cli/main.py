@@ -14,7 +14,7 @@ from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, fin
 from ddarm.cli.episode import command_episode
 from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
-from ddarm.cli.reproduce import command_reproduce
+from ddarm.cli.reproduce import command_reproduce, job_count
 from ddarm.cli.score import command_score
 from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
 from ddarm.control.gains import SEARCH_START_OMEGAS
@@ -81,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument('--out', default='runs/paper', help='output folder, new (runs/paper)')
     reproduce.add_argument('--quick', action='store_true',
                            help='small search budgets and three τ values: a first look in well under a minute')
+    reproduce.add_argument('--jobs', type=job_count, metavar='N',
+                           help='searches run at once, each a process with its share of the cores; the results do '
+                                'not depend on it (default: the cores this process may use)')
     reproduce.set_defaults(handler=command_reproduce)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')

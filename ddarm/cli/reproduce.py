@@ -12,6 +12,20 @@ from ddarm.interrupts import critical_section
 from ddarm.reporting.progress import Progress
 
 
+MAX_JOBS = 64
+
+
+def job_count(text: str) -> int:
+    """An argparse type: how many searches run at once, 1 to MAX_JOBS."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
+    if not 1 <= value <= MAX_JOBS:
+        raise argparse.ArgumentTypeError(f'{value} is not in [1, {MAX_JOBS}]')
+    return value
+
+
 def command_reproduce(args: argparse.Namespace) -> int:
     from ddarm.recording.bags import checked_output_path
     from ddarm.paper.experiments import Budget, Reproduction
@@ -19,6 +33,7 @@ def command_reproduce(args: argparse.Namespace) -> int:
     from ddarm.paper.schema import Results
     from ddarm.ros.session import GraphSession
     from ddarm.recording.runs import RunFolder
+    from ddarm.tuning.jobs import default_workers
 
     out = checked_output_path(args.out)
     started = time.perf_counter()
@@ -31,9 +46,9 @@ def command_reproduce(args: argparse.Namespace) -> int:
     # killed reproduction is never taken for a finished one.
     with RunFolder(out.name, out.parent, command=command) as run:
         reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress,
-                                    lambda label, total, index_name: Progress(total, label, index_name=index_name))
-        gains = reproduction.search_all()
-        reproduction.search_beyond(gains)
+                                    lambda label, total, index_name, position: Progress(
+                                        total, label, index_name=index_name, position=position))
+        gains = reproduction.search_all(args.jobs or default_workers())
         progress('running every reported episode through the ROS graph (lockstep), recording each')
         with GraphSession(out / 'nodes') as session:
             reproduction.run_episodes(session, gains)

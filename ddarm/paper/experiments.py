@@ -17,6 +17,7 @@ import numpy as np
 from ddarm.control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega_rule_computed_torque
 from ddarm.control.laws import CONTROLLERS
 from ddarm.control.stability import boundary_omega_delta
+from ddarm.episodes.engine import warm_up
 from ddarm.episodes.spec import EpisodeSpec, gains_from_omega
 from ddarm.motion.programmed import paper_torque_limit, paper_trajectory, within_limits
 from ddarm.paper.claims import judge_claims
@@ -27,6 +28,7 @@ from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.pareto import pareto_front
+from ddarm.tuning.jobs import Job, run_jobs
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
@@ -73,14 +75,50 @@ def optimise(template: EpisodeSpec, index: str, budget: Budget, progress=None) -
                    search=_search_record(result, wall, len(start_kp)))
 
 
+def pareto_record(beyond, budget: Budget, seed_i1: GainSet, seed_i: GainSet, progress=None) -> ParetoFront:
+    """The I1–I2 front of `beyond.law` in `beyond.case`, seeded by that case's I1 and I optima."""
+    template = _template(beyond.law, beyond.case)
+    seeds = (seed_i1, seed_i)
+    front = pareto_front(template, budget=budget.pareto_episodes,
+                         seeds=[(np.array(seed.kp), np.array(seed.kv)) for seed in seeds], progress=progress)
+    return ParetoFront(
+        controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
+        delay=template.delay, method=front.method, episodes=front.episodes, wall_time_s=front.wall_time_s,
+        front_size=front.front_size, searches=front.searches, searches_converged=front.searches_converged,
+        seeds=tuple(seed.name for seed in seeds), seeds_on_front=front.seeds_on_front,
+        front=[FrontRow(I1=point.I1, I2=point.I2, kp=tuple(point.kp.tolist()), kv=tuple(point.kv.tolist()))
+               for point in front.front])
+
+
+def robust_record(beyond, budget: Budget, nominal: GainSet, progress=None) -> Robustness:
+    """Gains for the `beyond.robust` objective of I over its scenarios, the nominal (3.2) optimum one more start;
+    their episodes through ROS (`rows`) are run later."""
+    template = _template(beyond.law, beyond.case)
+    grid = beyond.robust
+    scenarios = scenario_grid(template, taus=grid.taus, mass_scales=grid.mass_scales)
+    start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
+    start_kp, start_kv = np.vstack([start_kp, nominal.kp]), np.vstack([start_kv, nominal.kv])
+    started = time.perf_counter()
+    result = search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv, budget=budget.robust_episodes,
+                          method='global', popsize=budget.de_popsize, scenarios=scenarios, aggregate=grid.objective,
+                          progress=progress)
+    return Robustness(
+        controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
+        delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()), kv=tuple(result.kv.tolist()),
+        nominal=nominal.name,
+        # The ω-rule starts come first; the last start is the nominal optimum.
+        search=_search_record(result, time.perf_counter() - started, len(start_kp) - 1), rows=[])
+
+
 class Reproduction:
     """Runs every experiment into one output folder: bags/ here, results.json and the report by the caller."""
 
     def __init__(self, out: Path, budget: Budget, command: str, progress=None, bar=None) -> None:
         self.out, self.budget, self.command = out, budget, command
         self.progress = progress or (lambda message: None)
-        # bar(label, total, index_name): the Progress each search reports to (shown by the caller; none by default).
-        self.bar = bar or (lambda label, total, index_name: Progress(total, label, quiet=True))
+        # bar(label, total, index_name, position): the Progress each search reports to, on line `position` of a
+        # terminal (one per search running at once); shown by the caller, none by default.
+        self.bar = bar or (lambda label, total, index_name, position: Progress(total, label, quiet=True))
         self.settings = paper_settings()
         self.results = Results(
             command=command, quick=budget != self.settings.budgets.full,
@@ -102,60 +140,61 @@ class Reproduction:
                 'within_limits': within_limits(scored['max_abs_torque'], limit),
                 'bag': str(bag.relative_to(self.out))}
 
-    def search_all(self) -> dict:
-        """Every gain set the tables need, by (controller, index, case): I1 (2.5) at the paper's case, and
-        I (3.2) at each of Table 4's cases."""
-        gains = {}
+    def search_all(self, workers: int = 1) -> dict:
+        """Every search, `workers` at a time (ddarm.tuning.jobs; the same results for any number): the gain sets
+        the tables need, by (controller, index, case), I1 (2.5) at the paper's case and I (3.2) at each of
+        Table 4's; then the I1–I2 front and the robust gains of `beyond.law` in `beyond.case`, which start
+        from that case's optima. Also the stability map."""
+        beyond, jobs = self.settings.beyond, []
+        seeds = tuple((beyond.law, index, beyond.case) for index in ('I1', 'I'))
         for controller in CONTROLLERS:
             for index, cases in (('I1', (self.settings.case,)), ('I', self.settings.table4_cases)):
                 for case in cases:
-                    self.progress(f'searching {controller} ({index}) trajectory {case.trajectory}, T = {case.T}, '
-                                  f'Δ = {case.period}')
-                    with self.bar(f'{controller} {index}', self.budget.search_episodes, index) as bar:
-                        entry = optimise(_template(controller, case), index, self.budget, bar.update)
-                    self.results.gains.append(entry)
-                    gains[(controller, index, case)] = entry
-        return gains
-
-    def search_beyond(self, gains: dict) -> None:
-        """In-process, after the searches: the I1–I2 front and the robust gains of `beyond.law` in `beyond.case`,
-        and the stability map."""
-        beyond = self.settings.beyond
-        template = _template(beyond.law, beyond.case)
-        seeds = [gains[(beyond.law, index, beyond.case)] for index in ('I1', 'I')]
-        self.progress(f'I1–I2 front: {beyond.law} trajectory {beyond.case.trajectory}, T = {beyond.case.T}, '
-                      f'Δ = {beyond.case.period}')
-        with self.bar('front', self.budget.pareto_episodes, 'I') as bar:
-            front = pareto_front(template, budget=self.budget.pareto_episodes,
-                                 seeds=[(np.array(seed.kp), np.array(seed.kv)) for seed in seeds], progress=bar.update)
-        self.results.pareto = ParetoFront(
-            controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
-            delay=template.delay, method=front.method, episodes=front.episodes, wall_time_s=front.wall_time_s,
-            front_size=front.front_size, searches=front.searches, searches_converged=front.searches_converged,
-            seeds=tuple(seed.name for seed in seeds), seeds_on_front=front.seeds_on_front,
-            front=[FrontRow(I1=point.I1, I2=point.I2, kp=tuple(point.kp.tolist()), kv=tuple(point.kv.tolist()))
-                   for point in front.front])
+                    key = (controller, index, case)
+                    # Cost (episodes x samples) first, so that the last to start are short; the front's and the
+                    # robust search's seeds before all.
+                    cost = self.budget.search_episodes * case.T / case.period
+                    jobs.append(Job(key, f'{controller} {index} trajectory {case.trajectory}, T = {case.T}, '
+                                         f'Δ = {case.period}', optimise, (_template(controller, case), index, self.budget),
+                                    total=self.budget.search_episodes, index_name=index,
+                                    priority=cost + (1e12 if key in seeds else 0.0)))
+        samples = beyond.case.T / beyond.case.period
+        jobs.append(Job('front', f'I1–I2 front: {beyond.law} trajectory {beyond.case.trajectory}, T = {beyond.case.T}, '
+                                 f'Δ = {beyond.case.period}', pareto_record, (beyond, self.budget), needs=seeds,
+                        total=self.budget.pareto_episodes, priority=self.budget.pareto_episodes * samples))
         grid = beyond.robust
-        self.progress(f'robust gains: {beyond.law}, {grid.objective} I over τ = {list(grid.taus)} × mass scale '
-                      f'{list(grid.mass_scales)}')
-        scenarios = scenario_grid(template, taus=grid.taus, mass_scales=grid.mass_scales)
-        nominal = seeds[1]
-        start_kp, start_kv = omega_starts(template, SEARCH_START_OMEGAS)
-        start_kp, start_kv = np.vstack([start_kp, nominal.kp]), np.vstack([start_kv, nominal.kv])
-        started = time.perf_counter()
-        with self.bar('robust search', self.budget.robust_episodes, 'I') as bar:
-            result = search_gains(template, index='I', start_kp=start_kp, start_kv=start_kv,
-                                  budget=self.budget.robust_episodes, method='global', popsize=self.budget.de_popsize,
-                                  scenarios=scenarios, aggregate=grid.objective, progress=bar.update)
-        self.results.robust = Robustness(
-            controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
-            delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()),
-            kv=tuple(result.kv.tolist()), nominal=nominal.name,
-            # The ω-rule starts come first; the last start is the nominal optimum.
-            search=_search_record(result, time.perf_counter() - started, len(start_kp) - 1), rows=[])
+        jobs.append(Job('robust', f'robust gains: {beyond.law}, {grid.objective} I over τ = {list(grid.taus)} × '
+                                  f'mass scale {list(grid.mass_scales)}', robust_record, (beyond, self.budget),
+                        needs=seeds[1:], total=self.budget.robust_episodes,
+                        priority=self.budget.robust_episodes * samples))
+        if workers > 1:
+            # Compiled (or loaded from numba's cache) here once: workers starting on an empty cache would each
+            # compile the whole loop at once, on the same cores.
+            warm_up()
+        bars, free = {}, list(range(workers))
+
+        def start(job: Job) -> None:
+            self.progress(('searching ' if isinstance(job.key, tuple) else '') + job.label)
+            bars[job.key] = self.bar(job.label, job.total, job.index_name, free.pop(0))
+
+        def done(job: Job, result) -> None:
+            bar = bars.pop(job.key)
+            bar.close()
+            free.append(bar.position)
+
+        try:
+            found = run_jobs(jobs, workers, on_start=start, on_progress=lambda job, done, best: bars[job.key].update(
+                done, best), on_done=done)
+        finally:
+            for bar in bars.values():
+                bar.close()
+        gains = {job.key: found[job.key] for job in jobs if isinstance(job.key, tuple)}
+        self.results.gains.extend(gains.values())
+        self.results.pareto, self.results.robust = found['front'], found['robust']
         self.results.stability_map = [
             BoundaryRow(delay=delay, zeta=zeta, omega_delta=boundary_omega_delta(delay, zeta))
             for delay in beyond.stability_map.delays for zeta in beyond.stability_map.zetas]
+        return gains
 
     def run_episodes(self, recorder: EpisodeRecorder, gains: dict) -> None:
         for controller in CONTROLLERS:  # one law at a time: the session then starts each controller once

@@ -23,13 +23,14 @@ class Progress:
     other stream: lines without carriage returns, at most one every PLAIN_INTERVAL_S seconds and always
     a last one at close, e.g. `search: 1200/4000 episodes, best I = 0.3701, about 12 s left` (the last
     says the time taken instead). `quiet` (a command printing --json) shows nothing. `index_name` is the
-    name shown before a numeric best; `clock` (seconds, monotonic) paces and times the plain lines.
+    name shown before a numeric best; `clock` (seconds, monotonic) paces and times the plain lines; `position`
+    is the bar's line on the terminal, one per bar shown at once (tqdm's).
     Used as a context manager, it is closed on leaving the block, however the block ends.
     """
 
     def __init__(self, total: int | None, label: str, stream: TextIO | None = None, *, quiet: bool = False,
-                 index_name: str = 'I', clock: Callable[[], float] = time.monotonic) -> None:
-        self.total, self.label, self.index_name = total, label, index_name
+                 index_name: str = 'I', clock: Callable[[], float] = time.monotonic, position: int = 0) -> None:
+        self.total, self.label, self.index_name, self.position = total, label, index_name, position
         self.stream = sys.stderr if stream is None else stream
         self.clock = clock
         self.quiet, self.closed = quiet, False
@@ -37,7 +38,8 @@ class Progress:
         self.started = self.last_line = clock()
         self._bar = None
         if not quiet and self.stream.isatty():
-            self._bar = tqdm(total=total, desc=label, unit='episode', file=self.stream, dynamic_ncols=True)
+            self._bar = tqdm(total=total, desc=label, unit='episode', file=self.stream, dynamic_ncols=True,
+                             position=position)
 
     def update(self, done: int, best: float | str | None = None) -> None:
         """`done` episodes finished so far (a count, not an increment); `best` the best index so far, a number
