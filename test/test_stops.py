@@ -2,6 +2,7 @@
 its bag under way closed as incomplete and its run marked interrupted; SIGKILL leaves no node process behind."""
 
 import json
+import os
 import signal
 
 import pytest
@@ -67,3 +68,25 @@ def test_an_interrupted_reproduction_is_marked_interrupted(tmp_path):
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['status'] == 'interrupted'
     assert not (out / 'REPORT.md').exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = set().union(*(children(parent) for parent in frontier)) - found
+        found |= frontier
+    return found
+
+
+@pytest.mark.parametrize('signum', [signal.SIGTERM, signal.SIGKILL])
+def test_no_search_worker_or_node_outlives_a_stopped_or_killed_reproduction(tmp_path, signum):
+    process = ddarm('reproduce', '--quick', '--jobs', '2', '--out', str(tmp_path / 'paper'))
+    # The workers' server and its two workers, the plant and the first law's controller (and multiprocessing's
+    # resource tracker): all started while the first searches run.
+    wait_for(lambda: len(_descendants(process.pid)) >= 5 or process.poll() is not None, 60, 'the workers and nodes')
+    assert process.poll() is None, process.communicate()[1]
+    spawned = _descendants(process.pid)
+    os.kill(process.pid, signum)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == (128 + signum if signum != signal.SIGKILL else -signum), err
+    wait_for(lambda: not any(alive(pid) for pid in spawned), 20, 'every worker and node ended')

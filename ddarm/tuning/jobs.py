@@ -13,7 +13,9 @@ import multiprocessing
 import os
 import pickle
 import queue
+import select
 import signal
+import threading
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
@@ -67,12 +69,14 @@ def _next(pending: list[Job], results: dict) -> Job | None:
     return max(ready, key=lambda job: job.priority) if ready else None
 
 
-def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, on_done=None) -> dict:
+def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, on_done=None,
+             check=check_stop) -> dict:
     """Every job's result by key, `workers` at a time (1: in this process, in turn).
 
     `on_start(job)`, `on_progress(job, episodes, best)` and `on_done(job, result)` are called in this
     process, as the jobs start, report and end. A job's exception is raised here (the others stopped);
-    so is a stop by signal (ddarm.interrupts), after the workers are ended.
+    so is what `check` raises (called between jobs and at least every POLL_S s; by default a stop by
+    signal, ddarm.interrupts), after the workers are ended.
     """
     if not (isinstance(workers, int) and workers >= 1):
         raise JobError(f'workers must be a whole number >= 1, got {workers!r}')
@@ -86,16 +90,19 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
             job = _next(pending, results)
             if job is None:
                 raise JobError(f'jobs {[job.label for job in pending]} need each other')
+            check()
             pending.remove(job)
             on_start(job)
             result = job.function(*job.arguments, *(results[need] for need in job.needs),
-                                  progress=lambda episodes, best, job=job: on_progress(job, episodes, best))
+                                  progress=lambda episodes, best, job=job: (check(), on_progress(job, episodes, best)))
             results[job.key] = result
             on_done(job, result)
         return results
     # forkserver, not fork: this process may have threads (tqdm's monitor, the engine's pool) that a fork copies
     # mid-step; the server is a fresh process that forks each worker.
     context = multiprocessing.get_context('forkserver')
+    # Imported once by the server, so that each worker forks with them (they take seconds to import).
+    context.set_forkserver_preload(sorted({job.function.__module__ for job in jobs}))
     messages = context.Queue()
     threads = max(1, default_workers() // workers)
     by_key = {job.key: job for job in jobs}
@@ -115,7 +122,7 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
                 on_start(job)
                 running[worker.number] = job
                 worker.tasks.put((job.key, job.function, (*job.arguments, *(results[need] for need in job.needs))))
-            check_stop()
+            check()
             try:
                 kind, number, key, *payload = messages.get(timeout=POLL_S)
             except queue.Empty:
@@ -144,14 +151,98 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
         messages.close()
 
 
+class Cancelled(Exception):
+    """Raised in a BackgroundJobs' thread when its owner closes it before the jobs are done."""
+
+
+class BackgroundJobs:
+    """run_jobs in a thread of this process, so that this thread can use each result as it comes (`wait`).
+
+    The callbacks run in that thread. Used as a context manager: leaving the block, however, cancels
+    the jobs not done and ends the workers before it returns.
+    """
+
+    def __init__(self, jobs: list[Job], workers: int, *, on_start=None, on_progress=None, on_done=None) -> None:
+        _check(jobs)
+        self.labels = {job.key: job.label for job in jobs}
+        self.results: dict = {}
+        self._changed = threading.Condition()
+        self._cancelled = threading.Event()
+        self._error: BaseException | None = None
+        self._finished = False
+        user_done = on_done or (lambda job, result: None)
+
+        def done(job: Job, result) -> None:
+            user_done(job, result)
+            with self._changed:
+                self.results[job.key] = result
+                self._changed.notify_all()
+
+        def check() -> None:
+            if self._cancelled.is_set():
+                raise Cancelled('the jobs were closed before they were done')
+
+        def run() -> None:
+            try:
+                run_jobs(jobs, workers, on_start=on_start, on_progress=on_progress, on_done=done, check=check)
+            except BaseException as error:  # handed to the waiting thread, which raises it
+                self._error = error
+            finally:
+                with self._changed:
+                    self._finished = True
+                    self._changed.notify_all()
+
+        self._thread = threading.Thread(target=run, name='ddarm-jobs', daemon=True)
+        self._thread.start()
+
+    def ready(self, keys) -> bool:
+        with self._changed:
+            return all(key in self.results for key in keys)
+
+    def wait(self, keys=None) -> dict:
+        """The results of `keys` (default: every job), once all are done; a job's failure is raised here, as is a
+        stop by signal (checked every POLL_S s)."""
+        with self._changed:
+            while True:
+                if self._error is not None and not isinstance(self._error, Cancelled):
+                    raise self._error
+                wanted = self.labels if keys is None else keys
+                if all(key in self.results for key in wanted):
+                    return {key: self.results[key] for key in wanted}
+                if self._finished:
+                    raise JobError(f'the jobs ended without {[self.labels[key] for key in wanted]}')
+                self._changed.wait(POLL_S)
+                check_stop()
+
+    def wait_for_change(self) -> None:
+        """Until a job is done or fails, or POLL_S s have passed; a stop by signal is raised here."""
+        with self._changed:
+            if self._error is None and not self._finished:
+                self._changed.wait(POLL_S)
+        if self._error is not None and not isinstance(self._error, Cancelled):
+            raise self._error
+        check_stop()
+
+    def close(self) -> None:
+        """Cancel what is not done, end the workers, and return once the thread has."""
+        self._cancelled.set()
+        self._thread.join()
+
+    def __enter__(self) -> BackgroundJobs:
+        return self
+
+    def __exit__(self, *exception) -> None:
+        self.close()
+
+
 class _Worker:
     """A process that runs one job after another, sent on its own queue, and reports on the shared one."""
 
     def __init__(self, context, number: int, messages, threads: int) -> None:
         self.number = number
         self.tasks = context.SimpleQueue()
-        self.process = context.Process(target=_work, args=(number, self.tasks, messages, threads), daemon=True,
-                                       name=f'ddarm-job-{number}')
+        self.process = context.Process(target=_work, args=(number, self.tasks, messages, threads, os.getpid()),
+                                       daemon=True, name=f'ddarm-job-{number}')
         self.process.start()
 
     def end(self) -> None:
@@ -162,14 +253,30 @@ class _Worker:
             self.process.join()
 
 
-def _work(number: int, tasks, messages, threads: int) -> None:
-    """A worker's life: the parent alone takes Ctrl-C (and ends its workers), and the worker ends with the parent."""
+def _end_with(pid: int) -> None:
+    """End this process as soon as process `pid` ends, however it ends (SIGKILL included).
+
+    A worker's parent is multiprocessing's fork server, not the command that asked for it, and the
+    server outlives a killed command for as long as its workers do: so the worker watches the command.
+    """
+    try:
+        watched = os.pidfd_open(pid)
+    except ProcessLookupError:
+        os._exit(1)  # gone before the watch began
+
+    def watch() -> None:
+        select.select([watched], [], [])
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name='ddarm-job-watch', daemon=True).start()
+
+
+def _work(number: int, tasks, messages, threads: int, command: int) -> None:
+    """A worker's life: the command alone takes Ctrl-C (and ends its workers), and the worker ends with it."""
     from ddarm.episodes.engine import set_default_threads
-    from ddarm.ros.lifetime import PARENT_PID_VARIABLE, follow_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.environ[PARENT_PID_VARIABLE] = str(os.getppid())  # the forkserver, which ends when this process's parent does
-    follow_parent()
+    _end_with(command)
     set_default_threads(threads)
     while (task := tasks.get()) is not None:
         key, function, arguments = task
