@@ -38,7 +38,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import cma
 import numpy as np
 from pymoo.algorithms.moo.nsga2 import NSGA2
 from pymoo.config import Config
@@ -282,6 +281,8 @@ class _Scalarisation:
 def _refine(archive: _Archive, searches: int, seed: int) -> tuple[int, int]:
     """Scalarised CMA-ES searches from `searches` points spread along the archive's front, advanced together
     until all converge or the next generation would exceed the budget. Returns (searches run, converged)."""
+    import cma  # see ddarm.tuning.search._Run
+
     front_log = _log_indices(archive.indices)
     least_I = int(np.argmin(archive.indices.sum(axis=1)))
     rng = np.random.default_rng(seed)

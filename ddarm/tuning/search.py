@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cma
 import numpy as np
 import scipy.optimize
 
@@ -340,6 +339,9 @@ class _Run:
     """One local CMA-ES run of the global search under way: its strategy, where it started, what it found so far."""
 
     def __init__(self, origin: str, start: np.ndarray, popsize: int, rng) -> None:
+        # Imported here, not at the top: cma (with scipy.stats) takes 1.5 to 2 s that most commands need not wait.
+        import cma
+
         self.origin = origin
         self.strategy = cma.CMAEvolutionStrategy(start, LOCAL_SIGMA, cma_options(rng, popsize, CMA_XTOL))
         self.episodes, self.index = 0, np.inf
@@ -415,6 +417,8 @@ def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) 
 
 def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, popsize: int | None) -> None:
     """CMA-ES (the `cma` package) from the best start, one batch call per population."""
+    import cma  # see _Run
+
     values = objective(starts)
     rng = np.random.default_rng(seed)
     strategy = cma.CMAEvolutionStrategy(starts[int(np.argmin(values))], step, cma_options(rng, popsize))
