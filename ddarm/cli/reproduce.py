@@ -48,10 +48,14 @@ def command_reproduce(args: argparse.Namespace) -> int:
         reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress,
                                     lambda label, total, index_name, position: Progress(
                                         total, label, index_name=index_name, position=position))
-        gains = reproduction.search_all(args.jobs or default_workers())
-        progress('running every reported episode through the ROS graph (lockstep), recording each')
         with GraphSession(out / 'nodes') as session:
-            reproduction.run_episodes(session, gains)
+            # The first law's nodes come up while the searches run; each reported episode runs as soon as the
+            # searches it needs are done, while the others go on.
+            session.prepare(reproduction.first_episode())
+            with reproduction.start_searches(args.jobs or default_workers()) as searches:
+                progress('every reported episode runs through the ROS graph (lockstep), recorded, as its gains '
+                         'are found')
+                reproduction.run_episodes(session, searches)
         reproduction.judge_claims()
         results = reproduction.results
         results.wall_time_s = time.perf_counter() - started

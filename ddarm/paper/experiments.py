@@ -28,7 +28,7 @@ from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.pareto import pareto_front
-from ddarm.tuning.jobs import Job, run_jobs
+from ddarm.tuning.jobs import BackgroundJobs, Job
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
@@ -40,6 +40,9 @@ class EpisodeRecorder(Protocol):
 
     def record_and_score(self, spec: EpisodeSpec, bag: Path, command: str | None = None) -> tuple[Any, dict]:
         """Run `spec`, record it as a bag at `bag`, and return what ran and the bag's score (`ddarm score --json`)."""
+
+    def prepare(self, spec: EpisodeSpec) -> None:
+        """Get ready for episodes like `spec` (the session: start that law's nodes), before any is asked for."""
 
 
 def _template(controller: str, case: Case) -> EpisodeSpec:
@@ -140,11 +143,14 @@ class Reproduction:
                 'within_limits': within_limits(scored['max_abs_torque'], limit),
                 'bag': str(bag.relative_to(self.out))}
 
-    def search_all(self, workers: int = 1) -> dict:
-        """Every search, `workers` at a time (ddarm.tuning.jobs; the same results for any number): the gain sets
-        the tables need, by (controller, index, case), I1 (2.5) at the paper's case and I (3.2) at each of
-        Table 4's; then the I1–I2 front and the robust gains of `beyond.law` in `beyond.case`, which start
-        from that case's optima. Also the stability map."""
+    def first_episode(self) -> EpisodeSpec:
+        """An episode of the law whose episodes `run_episodes` runs first when no search is done yet."""
+        return _template(CONTROLLERS[0], self.settings.case)
+
+    def search_jobs(self) -> list[Job]:
+        """Every search as a job: the gain sets the tables need, keyed (controller, index, case), I1 (2.5) at the
+        paper's case and I (3.2) at each of Table 4's; then the I1–I2 front ('front') and the robust gains
+        ('robust') of `beyond.law` in `beyond.case`, which start from that case's optima."""
         beyond, jobs = self.settings.beyond, []
         seeds = tuple((beyond.law, index, beyond.case) for index in ('I1', 'I'))
         for controller in CONTROLLERS:
@@ -167,6 +173,11 @@ class Reproduction:
                                   f'mass scale {list(grid.mass_scales)}', robust_record, (beyond, self.budget),
                         needs=seeds[1:], total=self.budget.robust_episodes,
                         priority=self.budget.robust_episodes * samples))
+        return jobs
+
+    def start_searches(self, workers: int = 1) -> BackgroundJobs:
+        """The searches (`search_jobs`), `workers` at a time, in the background (ddarm.tuning.jobs; the same results
+        for any number), each shown by its own bar."""
         if workers > 1:
             # Compiled (or loaded from numba's cache) here once: workers starting on an empty cache would each
             # compile the whole loop at once, on the same cores.
@@ -182,33 +193,71 @@ class Reproduction:
             bar.close()
             free.append(bar.position)
 
-        try:
-            found = run_jobs(jobs, workers, on_start=start, on_progress=lambda job, done, best: bars[job.key].update(
-                done, best), on_done=done)
-        finally:
-            for bar in bars.values():
-                bar.close()
-        gains = {job.key: found[job.key] for job in jobs if isinstance(job.key, tuple)}
-        self.results.gains.extend(gains.values())
-        self.results.pareto, self.results.robust = found['front'], found['robust']
+        return BackgroundJobs(self.search_jobs(), workers, on_start=start, on_done=done,
+                              on_progress=lambda job, episodes, best: bars[job.key].update(episodes, best))
+
+    def search_all(self, workers: int = 1) -> dict:
+        """Every search (`search_jobs`), `workers` at a time, its results taken into `results` (`take_searches`)."""
+        with self.start_searches(workers) as searches:
+            return self.take_searches(searches.wait())
+
+    def take_searches(self, found: dict) -> dict:
+        """The searches' results into `results` (gain sets in the order of `search_jobs`), with the stability map;
+        returns the gain sets by key."""
+        beyond = self.settings.beyond
+        gains = {job.key: found[job.key] for job in self.search_jobs() if isinstance(job.key, tuple)}
+        self.results.gains = list(gains.values())
+        robust_rows = self.results.robust.rows if self.results.robust is not None else []
+        self.results.pareto = found['front']
+        self.results.robust = dataclasses.replace(found['robust'], rows=robust_rows)
         self.results.stability_map = [
             BoundaryRow(delay=delay, zeta=zeta, omega_delta=boundary_omega_delta(delay, zeta))
             for delay in beyond.stability_map.delays for zeta in beyond.stability_map.zetas]
         return gains
 
-    def run_episodes(self, recorder: EpisodeRecorder, gains: dict) -> None:
-        for controller in CONTROLLERS:  # one law at a time: the session then starts each controller once
-            self._tables_2_and_3(recorder, gains, controller)
-            self._table4(recorder, gains, controller)
-            self._section2(recorder, controller)
-            if self.results.robust is not None and controller == self.results.robust.controller:
-                self._robust(recorder, gains)
-        self._stability(recorder)
+    def run_episodes(self, recorder: EpisodeRecorder, searches: BackgroundJobs) -> None:
+        """Every reported episode through `recorder`, each group as soon as the searches it needs are done (while
+        the others go on), then the searches' results into `results`.
 
-    def _robust(self, recorder: EpisodeRecorder, gains: dict) -> None:
+        Among the groups ready, the current law's come first: the session starts a controller process
+        for each switch of law. The rows are kept in the order of the tables, whatever order they ran in.
+        """
+        case, beyond = self.settings.case, self.settings.beyond
+        groups = []  # (law, the searches it needs, what runs it)
+        for controller in CONTROLLERS:
+            groups += [
+                (controller, ((controller, 'I1', case), (controller, 'I', case)),
+                 lambda found, law=controller: self._tables_2_and_3(recorder, found, law)),
+                (controller, tuple((controller, 'I', table4) for table4 in self.settings.table4_cases),
+                 lambda found, law=controller: self._table4(recorder, found, law)),
+                (controller, (), lambda found, law=controller: self._section2(recorder, law))]
+        groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)), lambda found: self._robust(recorder, found)),
+                   ('computed_torque', (), lambda found: self._stability(recorder))]
+        law = None
+        while groups:
+            ready = [group for group in groups if searches.ready(group[1])]
+            if not ready:
+                if law is not None and all(group[0] != law for group in groups):
+                    # The current law is done and the other's next episodes wait for a search: switch the nodes
+                    # now, while it runs, not after.
+                    law = groups[0][0]
+                    recorder.prepare(_template(law, case))
+                searches.wait_for_change()
+                continue
+            group = next((group for group in ready if group[0] == law), ready[0])
+            groups.remove(group)
+            law = group[0]
+            group[2](searches.wait(group[1]))
+        order = {controller: rank for rank, controller in enumerate(CONTROLLERS)}
+        for rows in (self.results.table2, self.results.table3, self.results.table4,
+                     self.results.section2.omega_rules, self.results.section2.omega_procedure):
+            rows.sort(key=lambda row: order[row.controller])  # stable: each law's rows ran in the tables' order
+        self.take_searches(searches.wait())
+
+    def _robust(self, recorder: EpisodeRecorder, found: dict) -> None:
         """The robust gains and the nominal optimum on every scenario, each through the ROS graph."""
-        robust, beyond = self.results.robust, self.settings.beyond
-        nominal = self.results.gain_set(robust.nominal)
+        beyond = self.settings.beyond
+        robust, nominal = found['robust'], found[(beyond.law, 'I', beyond.case)]
         template = _template(beyond.law, beyond.case)
         rows = []
         for scenario in scenario_grid(template, taus=beyond.robust.taus, mass_scales=beyond.robust.mass_scales):

@@ -96,6 +96,10 @@ class GraphSession:
         if law not in self.processes:
             self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)}, arms[law])
 
+    def prepare(self, spec: EpisodeSpec) -> None:
+        """The nodes of `spec` started (`use_nodes`) without waiting for them: they come up while this process works."""
+        self.use_nodes(spec)
+
     def check_alive(self) -> None:
         for name, process in self.processes.items():
             if process.poll() is not None:

@@ -1,0 +1,98 @@
+"""Reproduction.run_episodes: each group of reported episodes runs as soon as its searches are done, whatever order
+they end in; the rows keep the tables' order, and the law's nodes are switched as seldom as the order allows."""
+
+import dataclasses
+
+import pytest
+
+from ddarm.control.laws import CONTROLLERS
+from ddarm.paper.experiments import Reproduction
+from ddarm.paper.settings import Budget
+
+SCORED = {'I1': 0.5, 'I2': 1.5, 'I': 2.0, 'diverged': False, 'max_abs_torque': [1.0, 1.0, 1.0],
+          'max_abs_nominal_torque': [10.0, 10.0, 10.0]}
+
+
+class Recorder:
+    """An EpisodeRecorder that records nothing, scores what it is told, and notes which law ran or was prepared."""
+
+    def __init__(self) -> None:
+        self.events = []
+
+    def record_and_score(self, spec, bag, command=None):
+        self.events.append(('run', spec.controller, bag.name))
+        return None, SCORED
+
+    def prepare(self, spec):
+        self.events.append(('prepare', spec.controller, None))
+
+
+class Searches:
+    """The searches' results handed out one at a time, in a given order, as BackgroundJobs hands them out."""
+
+    def __init__(self, found: dict, order: list) -> None:
+        self.found, self.order, self.results = found, list(order), {}
+
+    def ready(self, keys) -> bool:
+        return all(key in self.results for key in keys)
+
+    def wait_for_change(self) -> None:
+        key = self.order.pop(0)
+        self.results[key] = self.found[key]
+
+    def wait(self, keys=None) -> dict:
+        keys = list(self.found) if keys is None else keys
+        while not self.ready(keys):
+            self.wait_for_change()
+        return {key: self.results[key] for key in keys}
+
+
+@pytest.fixture(scope='module')
+def found(tmp_path_factory):
+    """Every search of a reproduction at a small budget, by key."""
+    budget = dataclasses.replace(Budget.quick(), search_episodes=300, pareto_episodes=300, robust_episodes=400)
+    reproduction = Reproduction(tmp_path_factory.mktemp('searches'), budget, 'ddarm reproduce')
+    with reproduction.start_searches(2) as searches:
+        return budget, searches.wait()
+
+
+def _switches(events):
+    laws = [law for kind, law, _ in events if kind == 'run']
+    return sum(1 for before, after in zip(laws, laws[1:]) if before != after)
+
+
+@pytest.mark.parametrize('ending', ['in order', 'reversed'])
+def test_rows_keep_the_tables_order_whatever_order_the_searches_end_in(tmp_path, found, ending):
+    budget, results = found
+    order = list(results) if ending == 'in order' else list(reversed(results))
+    (tmp_path / 'bags').mkdir()
+    reproduction = Reproduction(tmp_path, budget, 'ddarm reproduce')
+    recorder = Recorder()
+    reproduction.run_episodes(recorder, Searches(results, order))
+    done = reproduction.results
+    for rows in (done.table2, done.table3, done.table4, done.section2.omega_rules):
+        assert [row.controller for row in rows] == sorted((row.controller for row in rows), key=CONTROLLERS.index)
+    assert [(row.limited, row.tau) for row in done.table2 if row.controller == 'pd_gravity'] == [
+        (limited, tau) for limited in (False, True) for tau in budget.taus]
+    assert [gain_set.name for gain_set in done.gains] == [
+        results[key].name for key in results if isinstance(key, tuple)]
+    assert done.pareto == results['front'] and len(done.robust.rows) == 8
+    assert dataclasses.replace(done.robust, rows=[]) == results['robust']
+    ran = [bag for kind, _, bag in recorder.events if kind == 'run']
+    assert len(ran) == len(set(ran)) == 2 * (2 * len(budget.taus) + len(budget.taus) + 4 + 2) + 8 + 6
+    # A switch only when nothing of the current law is ready: the first law's episodes that need no search, then
+    # each law's as its searches end (Table 4's wait for the last ones).
+    assert _switches(recorder.events) <= 3
+
+
+def test_the_nodes_of_the_next_law_are_started_while_its_searches_run(tmp_path, found):
+    budget, results = found
+    pd_searches = [key for key in results if isinstance(key, tuple) and key[0] == 'pd_gravity']
+    # Computed torque's searches end first: its episodes run, then PD + gravity's wait for theirs.
+    order = [key for key in results if key not in pd_searches] + pd_searches
+    (tmp_path / 'bags').mkdir()
+    recorder = Recorder()
+    Reproduction(tmp_path, budget, 'ddarm reproduce').run_episodes(recorder, Searches(results, order))
+    prepared = recorder.events.index(('prepare', 'pd_gravity', None))
+    assert all(law == 'computed_torque' for kind, law, _ in recorder.events[prepared - 3:prepared] if kind == 'run')
+    assert recorder.events[prepared + 1][:2] == ('run', 'pd_gravity')
