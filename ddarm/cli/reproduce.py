@@ -8,6 +8,8 @@ import shlex
 import sys
 import time
 
+from tqdm import tqdm
+
 from ddarm.interrupts import critical_section
 from ddarm.reporting.progress import Progress
 
@@ -40,7 +42,8 @@ def command_reproduce(args: argparse.Namespace) -> int:
     command = shlex.join(['ddarm', *args.argv])
 
     def progress(message: str) -> None:
-        print(f'[{time.perf_counter() - started:6.1f} s] {message}', file=sys.stderr, flush=True)
+        # Through tqdm, which clears the searches' bars on a terminal, writes the line and draws them again.
+        tqdm.write(f'[{time.perf_counter() - started:6.1f} s] {message}', file=sys.stderr)
 
     # The folder's summary.json says `running` until the report is written: an interrupted or
     # killed reproduction is never taken for a finished one.

@@ -28,7 +28,7 @@ from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.pareto import pareto_front
-from ddarm.tuning.jobs import BackgroundJobs, Job
+from ddarm.tuning.jobs import BackgroundJobs, Job, JobError
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
@@ -143,9 +143,13 @@ class Reproduction:
                 'within_limits': within_limits(scored['max_abs_torque'], limit),
                 'bag': str(bag.relative_to(self.out))}
 
+    def _laws(self) -> list[str]:
+        """The laws in the order their searches end: `beyond.law`'s first, as the front and robust search need them."""
+        return [self.settings.beyond.law, *(law for law in CONTROLLERS if law != self.settings.beyond.law)]
+
     def first_episode(self) -> EpisodeSpec:
-        """An episode of the law whose episodes `run_episodes` runs first when no search is done yet."""
-        return _template(CONTROLLERS[0], self.settings.case)
+        """An episode of the law whose episodes `run_episodes` runs first, while no search is done yet."""
+        return _template(self._laws()[0], self.settings.case)
 
     def search_jobs(self) -> list[Job]:
         """Every search as a job: the gain sets the tables need, keyed (controller, index, case), I1 (2.5) at the
@@ -182,24 +186,23 @@ class Reproduction:
             # Compiled (or loaded from numba's cache) here once: workers starting on an empty cache would each
             # compile the whole loop at once, on the same cores.
             warm_up()
-        bars, free = {}, list(range(workers))
+        bars, positions = {}, {}  # by job: its Progress, and the terminal line it holds
 
         def start(job: Job) -> None:
             self.progress(('searching ' if isinstance(job.key, tuple) else '') + job.label)
-            bars[job.key] = self.bar(job.label, job.total, job.index_name, free.pop(0))
+            positions[job.key] = min(set(range(workers)) - set(positions.values()))
+            bars[job.key] = self.bar(job.label, job.total, job.index_name, positions[job.key])
 
         def done(job: Job, result) -> None:
-            bar = bars.pop(job.key)
-            bar.close()
-            free.append(bar.position)
+            bars.pop(job.key).close()
+            del positions[job.key]
 
-        return BackgroundJobs(self.search_jobs(), workers, on_start=start, on_done=done,
+        def end() -> None:  # the bars of jobs a failure or a stop cut short
+            for bar in bars.values():
+                bar.close()
+
+        return BackgroundJobs(self.search_jobs(), workers, on_start=start, on_done=done, on_end=end,
                               on_progress=lambda job, episodes, best: bars[job.key].update(episodes, best))
-
-    def search_all(self, workers: int = 1) -> dict:
-        """Every search (`search_jobs`), `workers` at a time, its results taken into `results` (`take_searches`)."""
-        with self.start_searches(workers) as searches:
-            return self.take_searches(searches.wait())
 
     def take_searches(self, found: dict) -> dict:
         """The searches' results into `results` (gain sets in the order of `search_jobs`), with the stability map;
@@ -224,7 +227,7 @@ class Reproduction:
         """
         case, beyond = self.settings.case, self.settings.beyond
         groups = []  # (law, the searches it needs, what runs it)
-        for controller in CONTROLLERS:
+        for controller in self._laws():
             groups += [
                 (controller, ((controller, 'I1', case), (controller, 'I', case)),
                  lambda found, law=controller: self._tables_2_and_3(recorder, found, law)),
@@ -233,18 +236,26 @@ class Reproduction:
                 (controller, (), lambda found, law=controller: self._section2(recorder, law))]
         groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)), lambda found: self._robust(recorder, found)),
                    ('computed_torque', (), lambda found: self._stability(recorder))]
+        unknown = sorted({str(key) for group in groups for key in group[1] if key not in searches.labels})
+        if unknown:
+            raise JobError(f'the reported episodes need searches that are not run: {unknown}')
         law = None
         while groups:
             ready = [group for group in groups if searches.ready(group[1])]
-            if not ready:
-                if law is not None and all(group[0] != law for group in groups):
+            law_done = all(group[0] != law for group in groups)
+            # Another law's episodes switch the nodes when they waited for a search, or when this law has no more:
+            # the episodes that need no search can wait for their law's turn.
+            choices = ([group for group in ready if group[0] == law]
+                       or [group for group in ready if group[1] or law_done])
+            if not choices:
+                if law is not None and law_done:
                     # The current law is done and the other's next episodes wait for a search: switch the nodes
                     # now, while it runs, not after.
                     law = groups[0][0]
                     recorder.prepare(_template(law, case))
                 searches.wait_for_change()
                 continue
-            group = next((group for group in ready if group[0] == law), ready[0])
+            group = choices[0]
             groups.remove(group)
             law = group[0]
             group[2](searches.wait(group[1]))

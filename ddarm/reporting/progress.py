@@ -38,8 +38,9 @@ class Progress:
         self.started = self.last_line = clock()
         self._bar = None
         if not quiet and self.stream.isatty():
+            # A bar below the first is cleared when it ends: tqdm would redraw it, finished, over the first line.
             self._bar = tqdm(total=total, desc=label, unit='episode', file=self.stream, dynamic_ncols=True,
-                             position=position)
+                             position=position, leave=position == 0)
 
     def update(self, done: int, best: float | str | None = None) -> None:
         """`done` episodes finished so far (a count, not an increment); `best` the best index so far, a number

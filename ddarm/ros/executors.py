@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
+
 
 def node_executor(context=None):
     """rclpy's EventsExecutor (its C++ one, experimental in Jazzy) for `context` (default: rclpy's default).
@@ -12,4 +16,12 @@ def node_executor(context=None):
     """
     from rclpy.experimental import EventsExecutor
 
-    return EventsExecutor(context=context)
+    # EventsExecutor() enables faulthandler on sys.stderr, which needs a file descriptor: a caller that replaced
+    # sys.stderr (pytest's capture, a notebook) gets the process's own for that call.
+    try:
+        sys.stderr.fileno()
+        stream = contextlib.nullcontext()
+    except (AttributeError, OSError, io.UnsupportedOperation):
+        stream = contextlib.redirect_stderr(sys.__stderr__)
+    with stream:
+        return EventsExecutor(context=context)

@@ -16,6 +16,8 @@ import queue
 import select
 import signal
 import threading
+import time
+import traceback
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
@@ -85,6 +87,8 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
     on_progress = on_progress or (lambda job, episodes, best: None)
     on_done = on_done or (lambda job, result: None)
     pending, results = list(jobs), {}
+    if not jobs:
+        return {}
     if workers == 1:
         while pending:
             job = _next(pending, results)
@@ -97,17 +101,19 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
                                   progress=lambda episodes, best, job=job: (check(), on_progress(job, episodes, best)))
             results[job.key] = result
             on_done(job, result)
-        return results
+        return {job.key: results[job.key] for job in jobs}
+    workers = min(workers, len(jobs))  # more would never get a job
     # forkserver, not fork: this process may have threads (tqdm's monitor, the engine's pool) that a fork copies
     # mid-step; the server is a fresh process that forks each worker.
     context = multiprocessing.get_context('forkserver')
     # Imported once by the server, so that each worker forks with them (they take seconds to import).
     context.set_forkserver_preload(sorted({job.function.__module__ for job in jobs}))
-    messages = context.Queue()
     threads = max(1, default_workers() // workers)
     by_key = {job.key: job for job in jobs}
-    pool = [_Worker(context, number, messages, threads) for number in range(workers)]
+    messages, pool, finished = context.Queue(), [], False
     try:
+        for number in range(workers):
+            pool.append(_Worker(context, number, messages, threads))
         running: dict[int, Job] = {}  # worker number -> its job
         while pending or running:
             for worker in pool:
@@ -123,36 +129,53 @@ def run_jobs(jobs: list[Job], workers: int, *, on_start=None, on_progress=None, 
                 running[worker.number] = job
                 worker.tasks.put((job.key, job.function, (*job.arguments, *(results[need] for need in job.needs))))
             check()
+            dead = [number for number in running if not pool[number].process.is_alive()]
             try:
-                kind, number, key, *payload = messages.get(timeout=POLL_S)
+                # A dead worker's last words may still be in the queue: read them before calling it dead.
+                message = messages.get(timeout=0.0 if dead else POLL_S)
             except queue.Empty:
-                # Nothing in flight: a worker that is gone now died in its job.
-                for number, job in running.items():
-                    if not pool[number].process.is_alive():
-                        raise JobError(f'{job.label}: its worker process ended (exit code '
-                                       f'{pool[number].process.exitcode}) before the job did')
+                for number in dead:
+                    raise JobError(f'{running[number].label}: its worker process ended (exit code '
+                                   f'{pool[number].process.exitcode}) before the job did')
                 continue
+            kind, number, key, payload = message
             job = by_key[key]
             if kind == 'progress':
                 on_progress(job, *payload)
             elif kind == 'done':
                 del running[number]
-                results[key] = payload[0]
+                results[key] = pickle.loads(payload)
                 on_done(job, results[key])
             else:
-                error, text = payload
-                raise error if error is not None else JobError(f'{job.label} failed: {text}')
-        for worker in pool:
-            worker.tasks.put(None)
-        return results
+                error, text, remote = payload
+                error = error if error is not None else JobError(f'{job.label} failed: {text}')
+                error.add_note(f'in the job {job.label!r}, on worker process {pool[number].process.pid}:\n{remote}')
+                raise error
+        finished = True
+        return {job.key: results[job.key] for job in jobs}
     finally:
-        for worker in pool:
-            worker.end()
+        _end(pool, finished)
         messages.close()
 
 
-class Cancelled(Exception):
-    """Raised in a BackgroundJobs' thread when its owner closes it before the jobs are done."""
+def _end(pool: list[_Worker], finished: bool) -> None:
+    """Every worker ended: told to stop after its last job, or terminated at once (a failure, a stop)."""
+    for worker in pool:
+        if finished:
+            worker.tasks.put(None)
+        else:
+            worker.process.terminate()
+    deadline = time.monotonic() + 5.0
+    for worker in pool:
+        worker.process.join(timeout=max(0.0, deadline - time.monotonic()))
+        if worker.process.is_alive():
+            worker.process.kill()
+            worker.process.join()
+
+
+class Cancelled(BaseException):
+    """Raised in a BackgroundJobs' thread when its owner closes it before the jobs are done; a BaseException,
+    like ddarm.interrupts.Interrupted, so that no `except Exception` in a job running in that thread eats it."""
 
 
 class BackgroundJobs:
@@ -162,7 +185,9 @@ class BackgroundJobs:
     the jobs not done and ends the workers before it returns.
     """
 
-    def __init__(self, jobs: list[Job], workers: int, *, on_start=None, on_progress=None, on_done=None) -> None:
+    def __init__(self, jobs: list[Job], workers: int, *, on_start=None, on_progress=None, on_done=None,
+                 on_end=None) -> None:
+        """`on_end()` is called in the thread once the jobs are over, however they end."""
         _check(jobs)
         self.labels = {job.key: job.label for job in jobs}
         self.results: dict = {}
@@ -188,6 +213,8 @@ class BackgroundJobs:
             except BaseException as error:  # handed to the waiting thread, which raises it
                 self._error = error
             finally:
+                if on_end is not None:
+                    on_end()
                 with self._changed:
                     self._finished = True
                     self._changed.notify_all()
@@ -210,7 +237,8 @@ class BackgroundJobs:
                 if all(key in self.results for key in wanted):
                     return {key: self.results[key] for key in wanted}
                 if self._finished:
-                    raise JobError(f'the jobs ended without {[self.labels[key] for key in wanted]}')
+                    missing = [self.labels.get(key, key) for key in wanted if key not in self.results]
+                    raise JobError(f'the jobs ended without the results of {missing}')
                 self._changed.wait(POLL_S)
                 check_stop()
 
@@ -219,8 +247,11 @@ class BackgroundJobs:
         with self._changed:
             if self._error is None and not self._finished:
                 self._changed.wait(POLL_S)
+            finished = self._finished
         if self._error is not None and not isinstance(self._error, Cancelled):
             raise self._error
+        if finished:
+            raise JobError('the jobs are all done: nothing more will change')
         check_stop()
 
     def close(self) -> None:
@@ -245,13 +276,6 @@ class _Worker:
                                        daemon=True, name=f'ddarm-job-{number}')
         self.process.start()
 
-    def end(self) -> None:
-        """Ended by now: after its last job it is told to stop; otherwise (a failure, a stop) it is terminated."""
-        self.process.join(timeout=1.0)
-        if self.process.is_alive():
-            self.process.terminate()
-            self.process.join()
-
 
 def _end_with(pid: int) -> None:
     """End this process as soon as process `pid` ends, however it ends (SIGKILL included).
@@ -263,9 +287,15 @@ def _end_with(pid: int) -> None:
         watched = os.pidfd_open(pid)
     except ProcessLookupError:
         os._exit(1)  # gone before the watch began
+    except OSError:  # a kernel before 5.3, or a container that refuses the call: look twice a second instead
+        watched = None
 
     def watch() -> None:
-        select.select([watched], [], [])
+        if watched is not None:
+            select.select([watched], [], [])
+        else:
+            while os.path.exists(f'/proc/{pid}'):
+                time.sleep(0.5)
         os.kill(os.getpid(), signal.SIGTERM)
 
     threading.Thread(target=watch, name='ddarm-job-watch', daemon=True).start()
@@ -282,13 +312,13 @@ def _work(number: int, tasks, messages, threads: int, command: int) -> None:
         key, function, arguments = task
         try:
             result = function(*arguments, progress=lambda episodes, best: messages.put(
-                ('progress', number, key, episodes, best)))
+                ('progress', number, key, (episodes, best))))
+            # Pickled here, not in the queue's feeder thread, which would drop a result it cannot pickle unseen.
+            messages.put(('done', number, key, pickle.dumps(result)))
         except Exception as error:
-            text = f'{type(error).__name__}: {error}'
+            text, remote = f'{type(error).__name__}: {error}', traceback.format_exc()
             try:
-                pickle.dumps(error)
+                pickle.loads(pickle.dumps(error))
             except Exception:
                 error = None  # the parent gets its text
-            messages.put(('failed', number, key, error, text))
-            continue
-        messages.put(('done', number, key, result))
+            messages.put(('failed', number, key, (error, text, remote)))
