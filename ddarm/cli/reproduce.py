@@ -29,16 +29,13 @@ def job_count(text: str) -> int:
 
 
 def command_reproduce(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
     from ddarm.recording.bags import checked_output_path
     from ddarm.paper.experiments import Budget, Reproduction
-    from ddarm.paper.report import write_report
-    from ddarm.paper.schema import Results
-    from ddarm.ros.session import GraphSession
     from ddarm.recording.runs import RunFolder
     from ddarm.tuning.jobs import default_workers
 
     out = checked_output_path(args.out)
-    started = time.perf_counter()
     command = shlex.join(['ddarm', *args.argv])
 
     def progress(message: str) -> None:
@@ -51,11 +48,13 @@ def command_reproduce(args: argparse.Namespace) -> int:
         reproduction = Reproduction(out, Budget.quick() if args.quick else Budget.full(), command, progress,
                                     lambda label, total, index_name, position: Progress(
                                         total, label, index_name=index_name, position=position))
-        with GraphSession(out / 'nodes') as session:
-            # The first law's nodes come up while the searches run; each reported episode runs as soon as the
-            # searches it needs are done, while the others go on.
-            session.prepare(reproduction.first_episode())
-            with reproduction.start_searches(args.jobs or default_workers()) as searches:
+        # The searches first: their workers come up while this process starts the ROS graph. Each reported
+        # episode runs as soon as the searches it needs are done, while the others go on.
+        with reproduction.start_searches(args.jobs or default_workers()) as searches:
+            from ddarm.ros.session import GraphSession
+
+            with GraphSession(out / 'nodes') as session:
+                session.prepare(reproduction.first_episode())
                 progress('every reported episode runs through the ROS graph (lockstep), recorded, as its gains '
                          'are found')
                 reproduction.run_episodes(session, searches)
@@ -64,6 +63,9 @@ def command_reproduce(args: argparse.Namespace) -> int:
         results.wall_time_s = time.perf_counter() - started
         # Every episode is done: a stop now waits for the report (plotting code turns a stop into errors of its own).
         with critical_section():
+            from ddarm.paper.report import write_report
+            from ddarm.paper.schema import Results
+
             (out / 'results.json').write_text(json.dumps(results.to_json(), indent=2))
             # The report reads the file back through the schema: what it shows is what results.json holds.
             written = write_report(out, Results.load(out / 'results.json'))
