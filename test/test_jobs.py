@@ -90,3 +90,24 @@ def test_a_job_list_that_cannot_run_is_refused(jobs, message, workers):
 def test_workers_must_be_a_whole_number_of_at_least_one(workers):
     with pytest.raises(JobError, match='workers must be a whole number'):
         run_jobs([], workers)
+
+
+def test_background_jobs_hand_over_every_result_even_the_last_as_they_end():
+    from ddarm.tuning.jobs import BackgroundJobs
+
+    jobs = [Job(name, name, job_helpers.square, (value,)) for name, value in (('a', 2), ('b', 3))]
+    for workers in (1, 2):
+        with BackgroundJobs(jobs, workers) as searches:
+            while not searches.ready(['a', 'b']):  # the last result and the end of the jobs come together
+                searches.wait_for_change()
+            assert searches.wait() == {'a': 4, 'b': 9}
+            searches.wait_for_change()  # all over: returns at once
+
+
+def test_background_jobs_raise_a_jobs_failure_in_the_waiting_thread():
+    from ddarm.tuning.jobs import BackgroundJobs
+
+    with BackgroundJobs([Job('bad', 'bad', job_helpers.refuses)], 2) as searches:
+        with pytest.raises(ValueError, match='no such gain: kq') as raised:
+            searches.wait(['bad'])
+    assert any("in the job 'bad'" in note for note in raised.value.__notes__)

@@ -139,3 +139,14 @@ def test_a_gains_file_that_is_not_text_is_refused(tmp_path):
     done = subprocess.run([str(DDARM), 'tuner', '--ros-args', '-p', f'gains_file:={gains}',
                            '-p', f'output_root:={tmp_path / "runs"}'], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and str(gains) in done.stderr and 'Traceback' not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize('jobs, message', [('0', '0 is not in [1, 64]'), ('65', '65 is not in [1, 64]'),
+                                           ('two', "'two' is not a whole number")])
+def test_a_bad_jobs_count_is_refused_before_any_search(capsys, tmp_path, jobs, message):
+    with pytest.raises(SystemExit) as stopped:
+        main(['reproduce', '--quick', '--jobs', jobs, '--out', str(tmp_path / 'paper')])
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert '--jobs' in err and message in err and 'searching' not in err
+    assert not (tmp_path / 'paper').exists()

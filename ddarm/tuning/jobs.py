@@ -243,15 +243,14 @@ class BackgroundJobs:
                 check_stop()
 
     def wait_for_change(self) -> None:
-        """Until a job is done or fails, or POLL_S s have passed; a stop by signal is raised here."""
+        """Until a job is done or fails, or POLL_S s have passed (at once if all are over); a job's failure and a stop
+        by signal are raised here. A caller waiting for results no job makes would wait forever: `labels` says
+        which there are."""
         with self._changed:
             if self._error is None and not self._finished:
                 self._changed.wait(POLL_S)
-            finished = self._finished
         if self._error is not None and not isinstance(self._error, Cancelled):
             raise self._error
-        if finished:
-            raise JobError('the jobs are all done: nothing more will change')
         check_stop()
 
     def close(self) -> None:
