@@ -42,7 +42,9 @@ def resolve(package, executable, environment):
     return Path(prefix) / 'lib' / package / executable
 
 
-def wait_for_service(name, timeout=30.0):
+# A node of a fresh colcon install compiles its loop before it comes up (its numba cache is its own): about
+# 30 s for the plant on the 2-core machine, more when it is busy.
+def wait_for_service(name, timeout=120.0):
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('layout_probe', context=context)

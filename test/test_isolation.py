@@ -237,6 +237,7 @@ def test_a_forged_plant_report_is_a_named_failure_not_a_crash(ros_context, hand_
         return publisher
 
     intruder, _ = intruder_at_sample(ros_context, 5, forge)
+    # Judged as it comes, not at the episode's end, when the plant's own report may have replaced it.
     assert_episode_fails(ros_context, 'report of /plant does not parse', intruder)
 
 

@@ -63,6 +63,7 @@ TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: S
 # plant refused, one for a sample it had passed, or a second one for a sample (a foreign publisher).
 FAILING_COUNTERS = {'lockstep': ('refused_commands', 'stale_commands', 'duplicate_commands'),
                     'realtime': ('refused_commands', 'duplicate_commands')}
+REPORT_COUNTERS = tuple(sorted({name for names in FAILING_COUNTERS.values() for name in names}))
 
 
 def spin_once(executor, timeout: float) -> None:
@@ -357,6 +358,15 @@ class GraphDriver(Node):
             elif values.get('event') == 'no_start':
                 self.recording.fail(f'{plant}: {status.message}')
             elif values.get('event') in ('complete', 'diverged'):
+                # Judged as it comes, not only at the end, where the plant's own report may have replaced it: a
+                # report that does not parse, or a second one (the plant sends one per episode), is a foreign one.
+                if self.recording.plant_report is not None:
+                    self.recording.fail(f'two end-of-episode reports from {plant} on {DIAGNOSTICS_TOPIC}: a foreign '
+                                        'publisher?')
+                try:
+                    plant_counters(values, REPORT_COUNTERS, plant)
+                except GraphEpisodeError as error:
+                    self.recording.fail(str(error))
                 self.recording.plant_report = values
 
     def _controller_note(self) -> str:
