@@ -21,6 +21,21 @@ def finite(text: str) -> float:
     return value
 
 
+def whole_number(low: int, high: int, unit: str = ''):
+    """An argparse type: a whole number in [low, high]; `unit` (e.g. 'samples') says what it counts when refused."""
+    noun = f'a whole number of {unit}' if unit else 'a whole number'
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not {noun}') from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f'{value} is not in [{low}, {high}]')
+        return value
+    return parse
+
+
 def add_arm_arguments(parser: argparse.ArgumentParser) -> None:
     """The options that name the arm and its motion: --urdf, --model-urdf, and --trajectory or --motion."""
     parser.add_argument('--urdf', metavar='FILE', help="the plant's arm (default: the paper's, config/ddarm.urdf)")

@@ -10,22 +10,14 @@ import time
 
 from tqdm import tqdm
 
+from ddarm.cli.arguments import whole_number
 from ddarm.interrupts import critical_section
 from ddarm.reporting.progress import Progress
 
 
 MAX_JOBS = 64
-
-
-def job_count(text: str) -> int:
-    """An argparse type: how many searches run at once, 1 to MAX_JOBS."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
-    if not 1 <= value <= MAX_JOBS:
-        raise argparse.ArgumentTypeError(f'{value} is not in [1, {MAX_JOBS}]')
-    return value
+# An argparse type: how many searches run at once.
+job_count = whole_number(1, MAX_JOBS)
 
 
 def command_reproduce(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from ddarm.cli.arguments import absolute_path, add_arm_arguments
+from ddarm.cli.arguments import absolute_path, add_arm_arguments, whole_number
 from ddarm.cli.output import format_vector
 from ddarm.control.laws import MAX_DELAY
 from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, modal_gains
@@ -15,15 +15,8 @@ from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, 
 ARM_OPTIONS = ('urdf', 'model_urdf', 'trajectory', 'motion')
 
 
-def _delay(text: str) -> int:
-    """An argparse type: a compute delay the controllers accept, a whole number of samples in [0, MAX_DELAY]."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number of samples') from None
-    if not 0 <= value <= MAX_DELAY:
-        raise argparse.ArgumentTypeError(f'{value} is not in [0, {MAX_DELAY}]')
-    return value
+# An argparse type: a compute delay the controllers accept.
+_delay = whole_number(0, MAX_DELAY, 'samples')
 
 
 def _positive(text: str) -> float:
