@@ -45,11 +45,15 @@ class BatchError(DdarmError, ValueError):
 _default_threads: int | None = None  # None: the cores this process may use
 
 
+def _check_threads(threads) -> None:
+    if threads is not None and not (isinstance(threads, (int, np.integer)) and 1 <= threads <= MAX_THREADS):
+        raise BatchError(f'threads must be a whole number in [1, {MAX_THREADS}], got {threads!r}')
+
+
 def set_default_threads(threads: int | None) -> None:
     """The threads a batch runs on when its caller names none: a worker process's share of the cores (None: all)."""
     global _default_threads
-    if threads is not None and not (isinstance(threads, (int, np.integer)) and 1 <= threads <= MAX_THREADS):
-        raise BatchError(f'threads must be a whole number in [1, {MAX_THREADS}], got {threads!r}')
+    _check_threads(threads)
     _default_threads = None if threads is None else int(threads)
 
 
@@ -188,8 +192,7 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
         raise BatchError(f'the plan has {plan.q_ref.shape[1]} joints, the URDF {dof}')
     kp, kv = _batch_gains(kp, kv, dof)
     size = kp.shape[0]
-    if threads is not None and not (isinstance(threads, (int, np.integer)) and 1 <= threads <= MAX_THREADS):
-        raise BatchError(f'threads must be a whole number in [1, {MAX_THREADS}], got {threads!r}')
+    _check_threads(threads)
     try:
         options = plant_options(template, plan, dof)
         if template.mass_scale is not None:
