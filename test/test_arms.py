@@ -29,8 +29,7 @@ from ddarm.episodes.engine import run_episode, simulate_batch
 from ddarm.episodes.spec import (EpisodeError, EpisodeSpec, check_episode, gains_from_omega, model_arm, plan_episode, plant_arm,
                                  plant_chain)
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import (chain_from_model, forward_dynamics, inverse_dynamics_at, joint_space_inertia,
-                                    joint_transforms, workspace)
+from ddarm.physics.dynamics import chain_from_model, forward_dynamics_at, inverse_dynamics_at
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMS_DIR = ROOT / 'config' / 'arms'
@@ -259,19 +258,13 @@ def random_positions(arm: Arm, rng, count: int) -> np.ndarray:
 
 
 def compiled_mass_and_acceleration(chain, q, v, torque):
-    """M(q) by the compiled CRBA and q̈ by the compiled forward dynamics, states (m, n) as lanes."""
+    """M(q) and q̈ by the compiled forward dynamics, states (m, n): M⁻¹'s column j is q̈ at q̇ = 0 under
+    G(q) + e_j, so M comes from the forward dynamics' own CRBA and Cholesky, not from the RNEA."""
     n, count = chain.dof, len(q)
-    q, v, torque = (np.ascontiguousarray(np.transpose(x)) for x in (q, v, torque))
-    scale = np.ones((n, count))
-    parent, kind, axis, placement_rotation, placement_translation, armature, _, mass, lever, inertia = chain.arrays()
-    work = workspace(n, count)
-    joint_transforms(kind, axis, placement_rotation, placement_translation, q, work[0], work[1], count)
-    joint_space_inertia(parent, kind, axis, armature, mass, lever, inertia, scale, work[0], work[1], work[8], work[9],
-                        work[10], work[13], count)
-    mass_matrix = np.moveaxis(work[13].copy(), -1, 0)
-    acceleration = np.empty((n, count))
-    forward_dynamics(chain.arrays(), scale, q, v, torque, workspace(n, count), acceleration, count)
-    return mass_matrix, acceleration.T
+    gravity = inverse_dynamics_at(chain, q, np.zeros_like(q), np.zeros_like(q))
+    inverse = np.stack([forward_dynamics_at(chain, q, np.zeros_like(q), gravity + np.eye(n)[j]) for j in range(n)],
+                       axis=-1)
+    return np.linalg.inv(inverse), forward_dynamics_at(chain, q, v, torque)
 
 
 def assert_dynamics_match(arm: Arm, chain, reference: Dynamics, q, v, a) -> None:

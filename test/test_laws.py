@@ -10,7 +10,7 @@ from ddarm.control.laws import (gravity_feedforward, ComputedTorqueLaw, DelayBuf
                                 ReferencePoint, SampledController, checked_delay, checked_gains,
                                 computed_torque, pd_gravity)
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import chain_from_model, workspace
+from ddarm.physics.dynamics import chain_from_model, compiled_dynamics
 
 
 @pytest.fixture(scope='module')
@@ -79,8 +79,8 @@ def compiled_laws(chain, kp, kv, q_ref, v_ref, a_ref, gravity_ref, qm, vm, visco
     kp, kv, qm, vm = (np.ascontiguousarray(x) for x in (kp, kv, qm, vm))
     pd, ct = np.empty((n, lanes)), np.empty((n, lanes))
     pd_gravity(kp, kv, q_ref, v_ref, gravity_ref, qm, vm, pd, lanes)
-    computed_torque(chain.arrays(), np.ones((n, lanes)), kp, kv, q_ref, v_ref, a_ref, qm, vm, viscous, coulomb,
-                    workspace(n, lanes), np.empty((n, lanes)), ct, lanes)
+    computed_torque(compiled_dynamics(chain).inverse_dynamics, np.ones((n, lanes)), kp, kv, q_ref, v_ref, a_ref, qm,
+                    vm, viscous, coulomb, np.empty((n, lanes)), ct, lanes)
     return pd, ct
 
 

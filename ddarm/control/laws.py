@@ -16,7 +16,7 @@ import numpy as np
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import COMPILED, Chain, inverse_dynamics, joint_transforms, workspace
+from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics
 
 PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each law
 MAX_DELAY = 100
@@ -64,48 +64,43 @@ def pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, comm
 
 
 @numba.njit(**COMPILED)
-def computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm, viscous_friction,
-                    coulomb_friction, work, commanded_acceleration, command, lanes):
+def computed_torque(inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm,
+                    viscous_friction, coulomb_friction, commanded_acceleration, command, lanes):
     """(2.6): P = M̂(q)(q̈^d + K_p e + K_v ė) + V̂(q, q̇) + Ĝ(q) + F̂(q̇) at the measured state.
 
-    The model's inverse dynamics at the measured state with the commanded acceleration; the
-    paper's (2.11) swaps K_p and K_v by a misprint, (2.6) is meant (spec §5).
+    The model's inverse dynamics (Dynamics.inverse_dynamics) at the measured state with the commanded
+    acceleration; the paper's (2.11) swaps K_p and K_v by a misprint, (2.6) is meant (spec §5).
     """
-    parent, kind, axis, placement_rotation, placement_translation, armature, gravity, mass, lever, inertia = chain
-    rotation, translation, spin, velocity, spin_rate, acceleration, force, moment = work[:8]
     n = qm.shape[0]
     for i in range(n):
         for b in range(lanes):
             commanded_acceleration[i, b] = (a_ref[i] + kp[i, b] * (q_ref_measured[i] - qm[i, b])
                                             + kv[i, b] * (v_ref_measured[i] - vm[i, b]))
-    joint_transforms(kind, axis, placement_rotation, placement_translation, qm, rotation, translation, lanes)
-    inverse_dynamics(parent, kind, axis, armature, gravity, mass, lever, inertia, model_scale, rotation, translation,
-                     vm, commanded_acceleration, spin, velocity, spin_rate, acceleration, force, moment, command,
-                     lanes)
+    inverse_dynamics(model_scale, qm, vm, commanded_acceleration, command, lanes)
     for i in range(n):
         for b in range(lanes):
             command[i, b] += viscous_friction[i] * vm[i, b] + coulomb_friction[i] * np.sign(vm[i, b])
 
 
 @numba.njit(**COMPILED, inline='always')
-def law_command(controller, chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
-                viscous_friction, coulomb_friction, work, commanded_acceleration, command, lanes):
+def law_command(controller, inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref,
+                gravity_ref, qm, vm, viscous_friction, coulomb_friction, commanded_acceleration, command, lanes):
     """The command of the law coded `controller` (a law class's `code`) for every lane."""
     if controller == PD_GRAVITY:
         pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, lanes)
     else:
-        computed_torque(chain, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm, viscous_friction,
-                        coulomb_friction, work, commanded_acceleration, command, lanes)
+        computed_torque(inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm,
+                        viscous_friction, coulomb_friction, commanded_acceleration, command, lanes)
 
 
 @numba.njit(**COMPILED)
-def _command_one(controller, chain, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
+def _command_one(controller, inverse_dynamics, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
                  viscous_friction, coulomb_friction):
     """One episode's command, its workspace made here: the controller node's step."""
     n = qm.shape[0]
     command = np.empty((n, 1))
-    law_command(controller, chain, np.ones((n, 1)), kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm,
-                vm, viscous_friction, coulomb_friction, workspace(n, 1), np.empty((n, 1)), command, 1)
+    law_command(controller, inverse_dynamics, np.ones((n, 1)), kp, kv, q_ref_measured, v_ref_measured, a_ref,
+                gravity_ref, qm, vm, viscous_friction, coulomb_friction, np.empty((n, 1)), command, 1)
     return command[:, 0]
 
 
@@ -181,7 +176,7 @@ class _Law:
 
     def __init__(self, chain: Chain, kp, kv, viscous_friction=None, coulomb_friction=None) -> None:
         self.chain = chain
-        self._arrays = chain.arrays()
+        self._inverse_dynamics = compiled_dynamics(chain).inverse_dynamics
         self.set_gains(kp, kv)
         zero = np.zeros(chain.dof)
         self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
@@ -201,7 +196,7 @@ class _Law:
         """
         if self.gravity_feedforward and gravity_ref is None:
             raise GainError('PD + gravity needs the gravity feedforward Ĝ(q^d(t_n)) (gravity_feedforward)')
-        return _command_one(self.code, self._arrays, *self._gain_columns,
+        return _command_one(self.code, self._inverse_dynamics, *self._gain_columns,
                             np.asarray(measured.q_ref, dtype=float), np.asarray(measured.v_ref, dtype=float),
                             np.asarray(reference.a, dtype=float),
                             np.zeros(self.chain.dof) if gravity_ref is None else np.asarray(gravity_ref, dtype=float),

@@ -25,7 +25,7 @@ from ddarm.episodes.spec import (EpisodeError, EpisodePlan, EpisodeSpec, check_e
                                   plan_episode, plant_chain, plant_options)
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, disturbed_start
-from ddarm.physics.dynamics import COMPILED, load_chain, workspace
+from ddarm.physics.dynamics import COMPILED, compiled_dynamics, load_chain
 from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
 
@@ -58,12 +58,14 @@ def set_default_threads(threads: int | None) -> None:
 
 
 @numba.njit(**COMPILED)
-def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episode, plant, record, series, outcome):
+def _run_chunk(start, lanes, plant_dynamics, model_dynamics, controller, delay, q0, members, episode, plant, record,
+               series, outcome):
     """Members start … start + lanes - 1 through the loop of spec §5, all samples in step.
 
     Each member has its own gains, q̇(0), torque limit and plant mass scale; a member stops at a
     non-finite command for sample n (scored up to n - 1) or a state out of bounds after the
-    period from sample n (scored up to n), while the others go on.
+    period from sample n (scored up to n), while the others go on. `plant_dynamics` is the plant's
+    forward dynamics, `model_dynamics` the controller model's inverse dynamics (Dynamics).
     """
     plant_scale, member_kp, member_kv, member_v0, member_limit = members
     q_ref, v_ref, a_ref, gravity_ref, nominal, error_weight, torque_weight, viscous_model, coulomb_model = episode
@@ -71,10 +73,6 @@ def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episo
     error_sum, torque_sum, diverged_at, scored = outcome
     # Every compiled call counts references to its array arguments: arrays shared with the
     # other threads would have their counts' cache lines bounce between the cores.
-    chain = (chain[0].copy(), chain[1].copy(), chain[2].copy(), chain[3].copy(), chain[4].copy(), chain[5].copy(),
-             chain[6].copy(), chain[7].copy(), chain[8].copy(), chain[9].copy())
-    model = (model[0].copy(), model[1].copy(), model[2].copy(), model[3].copy(), model[4].copy(), model[5].copy(),
-             model[6].copy(), model[7].copy(), model[8].copy(), model[9].copy())
     plant = (plant[0].copy(), plant[1].copy(), plant[2].copy(), plant[3], plant[4], plant[5], plant[6])
     n, samples = q0.shape[0], q_ref.shape[0]
     k_max = samples - 1
@@ -86,7 +84,6 @@ def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episo
             kp[i, b], kv[i, b] = member_kp[start + b, i], member_kv[start + b, i]
             q[i, b], v[i, b] = q0[i], member_v0[start + b, i]
     model_scale = np.ones((n, lanes))
-    law_work = workspace(n, lanes)
     scratch = step_workspace(n, lanes)
     ring_q, ring_v = np.empty((delay + 1, n, lanes)), np.empty((delay + 1, n, lanes))
     commanded_acceleration, command = np.empty((n, lanes)), np.empty((n, lanes))
@@ -101,8 +98,8 @@ def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episo
         ring_q[k % (delay + 1)], ring_v[k % (delay + 1)] = q, v
         measured = measured_sample(k, delay)
         qm, vm = ring_q[measured % (delay + 1)], ring_v[measured % (delay + 1)]
-        law_command(controller, model, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k], gravity_ref[k],
-                    qm, vm, viscous_model, coulomb_model, law_work, commanded_acceleration, command, lanes)
+        law_command(controller, model_dynamics, model_scale, kp, kv, q_ref[measured], v_ref[measured], a_ref[k],
+                    gravity_ref[k], qm, vm, viscous_model, coulomb_model, commanded_acceleration, command, lanes)
         saturate(command, limit, applied, lanes)
         for b in range(lanes):
             if not running[b]:
@@ -122,7 +119,7 @@ def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episo
                     out_command[start + b, k, i], out_torque[start + b, k, i] = command[i, b], applied[i, b]
         if remaining == 0 or k == k_max:
             break
-        advance(chain, scale, plant, applied, q, v, within, scratch, lanes)
+        advance(plant_dynamics, scale, plant, applied, q, v, within, scratch, lanes)
         for b in range(lanes):
             if running[b] and not within[b]:
                 diverged_at[start + b], scored[start + b] = k + 1, k + 1
@@ -133,14 +130,14 @@ def _run_chunk(start, lanes, chain, model, controller, delay, q0, members, episo
 
 
 @numba.njit(**COMPILED, nogil=True)
-def _run_chunks(first_chunk, chunk_stride, lanes, chain, model, controller, delay, q0, members, episode, plant,
-                record, series, outcome):
+def _run_chunks(first_chunk, chunk_stride, lanes, plant_dynamics, model_dynamics, controller, delay, q0, members,
+                episode, plant, record, series, outcome):
     """One thread's share of the batch: chunks first_chunk, first_chunk + chunk_stride, … of `lanes` members."""
     size = members[1].shape[0]
     for chunk in range(first_chunk, (size + lanes - 1) // lanes, chunk_stride):
         start = chunk * lanes
-        _run_chunk(start, min(lanes, size - start), chain, model, controller, delay, q0, members, episode, plant,
-                   record, series, outcome)
+        _run_chunk(start, min(lanes, size - start), plant_dynamics, model_dynamics, controller, delay, q0, members,
+                   episode, plant, record, series, outcome)
 
 
 def _batch_gains(kp, kv, dof: int) -> tuple[np.ndarray, np.ndarray]:
@@ -239,8 +236,9 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21, not 32 + 32 and 26.
     chunks_per_thread = -(-size // (threads * LANES))
     lanes = -(-size // (threads * chunks_per_thread))
-    arguments = (lanes, chain.arrays(), model.arrays(), law.code, int(template.delay), np.array(plan.q0, dtype=float), members,
-                 episode, compiled, series, (out_q, out_v, out_command, out_torque), outcome)
+    arguments = (lanes, compiled_dynamics(chain).forward_dynamics, compiled_dynamics(model).inverse_dynamics,
+                 law.code, int(template.delay), np.array(plan.q0, dtype=float), members, episode, compiled, series,
+                 (out_q, out_v, out_command, out_torque), outcome)
     if threads == 1:
         _run_chunks(0, 1, *arguments)
     else:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.physics.dynamics import COMPILED, Chain, forward_dynamics, workspace
+from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes
@@ -109,20 +109,22 @@ def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v,
 
 @numba.njit(**COMPILED, inline='always')
 def step_workspace(n, lanes):
-    """Scratch arrays for `advance`: the dynamics' workspace and the RK4 stages."""
-    return (workspace(n, lanes), np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)),
-            np.empty((n, lanes)), np.empty((4, n, lanes)), np.empty((4, n, lanes)))
+    """Scratch arrays for `advance`: the joint torques and the RK4 stages."""
+    return (np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)),
+            np.empty((4, n, lanes)), np.empty((4, n, lanes)))
 
 
 @numba.njit(**COMPILED)
-def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
+def advance(forward_dynamics, mass_scale, options, applied, q, v, within, scratch, lanes):
     """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4 in `substeps` steps; spec §3, §5, §11).
+
+    `forward_dynamics` is the plant's (Dynamics.forward_dynamics), its links scaled by `mass_scale`.
 
     Each lane whose new state is finite and within the bounds takes it (within[b] = True); any
     other keeps its state of t_n, frozen as the last one within bounds (within[b] = False; spec §12).
     """
     external_torque, viscous_friction, coulomb_friction, period, substeps, max_position, max_velocity = options
-    work, load, qn, vn, qs, stage_v, stage_a = scratch
+    load, qn, vn, qs, stage_v, stage_a = scratch
     n = q.shape[0]
     h = period / substeps
     qn[:], vn[:] = q, v
@@ -131,7 +133,7 @@ def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
         for stage in range(4):
             vs = stage_v[stage]
             _plant_load(applied, external_torque, viscous_friction, coulomb_friction, vs, load, lanes)
-            forward_dynamics(chain, mass_scale, qs, vs, load, work, stage_a[stage], lanes)
+            forward_dynamics(mass_scale, qs, vs, load, stage_a[stage], lanes)
             if stage < 3:
                 step = h if stage == 2 else 0.5 * h
                 for i in range(n):
@@ -156,10 +158,10 @@ def advance(chain, mass_scale, options, applied, q, v, within, scratch, lanes):
 
 
 @numba.njit(**COMPILED)
-def _advance_one(chain, mass_scale, options, applied, q, v):
+def _advance_one(forward_dynamics, mass_scale, options, applied, q, v):
     """`advance` for one episode, its workspace made here: the plant node's step."""
     within = np.empty(1, dtype=np.bool_)
-    advance(chain, mass_scale, options, applied, q, v, within, step_workspace(q.shape[0], 1), 1)
+    advance(forward_dynamics, mass_scale, options, applied, q, v, within, step_workspace(q.shape[0], 1), 1)
     return within[0]
 
 
@@ -175,7 +177,7 @@ class Plant:
         dof = chain.dof
         self.dof = dof
         self.options = options.checked(dof)
-        self._chain = chain.arrays()
+        self._forward_dynamics = compiled_dynamics(chain).forward_dynamics
         self._compiled_options = self.options.compiled(dof)
         scale = np.ones(dof) if mass_scale is None else checked_mass_scale(mass_scale, dof)
         self._mass_scale = np.ascontiguousarray(scale[:, None])
@@ -228,7 +230,7 @@ class Plant:
                              f'got {applied_torque!r}')
         if self.diverged:
             return False
-        if not _advance_one(self._chain, self._mass_scale, self._compiled_options,
+        if not _advance_one(self._forward_dynamics, self._mass_scale, self._compiled_options,
                             np.ascontiguousarray(torque[:, None]), self._q, self._v):
             self.diverged = True
             return False
