@@ -2,6 +2,7 @@
 and the compiled dynamics against Pinocchio's own algorithms."""
 
 import dataclasses
+import importlib.util
 import json
 from pathlib import Path
 
@@ -304,3 +305,25 @@ def test_ddarm_bench_compares_the_two_paths_on_the_episodes_both_ran(capsys):
     assert figures['max_rel_index_diff'] < 1e-9 and figures['divergence_disagreements'] == 0
     assert figures['batch_episodes_per_s'] > 0 and figures['scalar_episodes_per_s'] > 0
     assert figures['peak_rss_mib'] > 0
+    assert [rate['B'] for rate in figures['batch_sizes']] == [8, 64, 1000]
+    many = figures['many_joint_arm']
+    assert many['joints'] == 7 and Path(many['urdf']).name == 'panda.urdf'
+    assert all(rate['episodes_per_s'] > 0 for rate in figures['batch_sizes'] + many['batch_sizes'])
+
+
+def test_the_engine_equals_bench_closed_forms_hand_written_loop_for_the_papers_arm():
+    # bench/closed_form.py writes M, V, G of MODEL.md §3 as formulas (V from M's Christoffel symbols) and the
+    # loop by hand: its indices are the engine's for every member, so the benchmark compares equal work.
+    spec = importlib.util.spec_from_file_location('closed_form', ROOT / 'bench' / 'closed_form.py')
+    closed_form = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(closed_form)
+    template = closed_form.REFERENCE
+    plan = plan_episode(template)
+    kp, kv = closed_form.perturbed_gains(template, 24, seed=3)
+    episodes = simulate_batch(template, kp, kv, plan=plan)
+    first, second = closed_form.closed_form_batch(
+        kp, kv, np.array(plan.q0, dtype=float), np.tile(plan.v0, (24, 1)), plan.q_ref, plan.v_ref, plan.a_ref,
+        plan.nominal, closed_form.error_weights(3), closed_form.torque_weights(plan.nominal), template.period,
+        template.substeps, closed_form.DEFAULT_MAX_POSITION, closed_form.DEFAULT_MAX_VELOCITY)
+    np.testing.assert_allclose(first / plan.k_max, episodes.I1, rtol=1e-11)
+    np.testing.assert_allclose(second / plan.k_max, episodes.I2, rtol=1e-11)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from ddarm.cli.arguments import absolute_path
-from ddarm.episodes.bench import GAIN_SPREAD, SCALAR_EPISODES, reference_case, run_bench
-
+from ddarm.episodes.bench import (BATCH_SIZES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES, batch_rates,
+                                  reference_case, run_bench)
+from ddarm.physics.arm import config_file
 
 
 def _count(name: str):
@@ -26,6 +28,11 @@ def _count(name: str):
 def command_bench(args: argparse.Namespace) -> int:
     template = reference_case(absolute_path(args.urdf), absolute_path(args.motion))
     figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads, template)
+    figures['batch_sizes'] = batch_rates(template, BATCH_SIZES, args.seed, args.threads)
+    urdf, motion = (str(config_file(*parts)) for parts in MANY_JOINT_ARM)
+    arm = reference_case(urdf, motion)
+    figures['many_joint_arm'] = {'urdf': urdf, 'motion': motion, 'joints': len(arm.kp),
+                                 'batch_sizes': batch_rates(arm, BATCH_SIZES, args.seed, args.threads)}
     if args.json:
         print(json.dumps(figures))
         return 0
@@ -42,6 +49,11 @@ def command_bench(args: argparse.Namespace) -> int:
           f"{figures['max_rel_index_diff']:.2e}; divergence flags disagree on "
           f"{figures['divergence_disagreements']}")
     print(f"  peak RSS     : {figures['peak_rss_mib']:.0f} MiB")
+    many = figures['many_joint_arm']
+    for label, rates in ((f"this case ({figures['joints']} joints)", figures['batch_sizes']),
+                         (f"{many['joints']}-joint arm ({Path(many['urdf']).name}, ω = 15 rule)", many['batch_sizes'])):
+        print(f"  batch sizes, {label}: " + ', '.join(f"B = {rate['B']}: {rate['episodes_per_s']:.0f}"
+                                                     for rate in rates) + ' episodes/s')
     return 0
 
 

@@ -19,6 +19,10 @@ REFERENCE = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,
 GAIN_SPREAD = 0.2
 # One episode per call pays the per-call costs B times over: a sample of them is enough for its rate.
 SCALAR_EPISODES = 50
+# A CMA-ES population, a DE generation, a large batch.
+BATCH_SIZES = (8, 64, 1000)
+# The arm of many joints `ddarm bench` also runs: Franka Panda's 7 (config/arms/panda).
+MANY_JOINT_ARM = ('arms', 'panda', 'panda.urdf'), ('arms', 'panda', 'panda-motion.yaml')
 
 
 def reference_case(urdf: str | None = None, motion: str | None = None) -> EpisodeSpec:
@@ -81,3 +85,21 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
         'warmup_s': warmup, 'peak_rss_mib': peak_rss_mib(),
     }
 
+
+
+def batch_rates(template: EpisodeSpec, sizes=BATCH_SIZES, seed: int = 0, threads: int | None = None,
+                rounds: int = 3) -> list[dict]:
+    """Batch episodes/s of `template` at each B (the best of `rounds` calls; the first call compiles or loads the
+    compiled code and is not timed)."""
+    plan = check_episode(template)
+    kp, kv = perturbed_gains(template, max(sizes), seed)
+    simulate_batch(template, kp[:1], kv[:1], plan=plan, threads=threads)
+    rates = []
+    for size in sizes:
+        best = float('inf')
+        for _ in range(rounds):
+            started = time.perf_counter()
+            simulate_batch(template, kp[:size], kv[:size], plan=plan, threads=threads)
+            best = min(best, time.perf_counter() - started)
+        rates.append({'B': size, 'episodes_per_s': size / best})
+    return rates

@@ -40,17 +40,23 @@ class ModelError(DdarmError, ValueError):
     """A URDF or model option that cannot describe the arm."""
 
 
-def default_urdf_path() -> Path:
-    """The arm's URDF: from the source tree, else from the share folder of the prefix this module is installed in."""
+def config_file(*parts: str) -> Path:
+    """A file of ddarm's config/ folder (e.g. 'arms', 'panda', 'panda.urdf'): from the source tree, else from the
+    share folder of the prefix this module is installed in."""
     package = Path(__file__).resolve().parents[1]
-    candidates = [package.parent / 'config' / URDF_NAME]
+    candidates = [package.parent / 'config']
     if len(package.parents) > 3:  # <prefix>/lib/pythonX.Y/site-packages/ddarm (colcon or pip)
-        candidates.append(package.parents[3] / 'share' / 'ddarm' / 'config' / URDF_NAME)
-    candidates.append(Path(sys.prefix) / 'share' / 'ddarm' / 'config' / URDF_NAME)
+        candidates.append(package.parents[3] / 'share' / 'ddarm' / 'config')
+    candidates.append(Path(sys.prefix) / 'share' / 'ddarm' / 'config')
     for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ModelError(f'{URDF_NAME} not found in {[str(c) for c in candidates]}')
+        if candidate.joinpath(*parts).is_file():
+            return candidate.joinpath(*parts)
+    raise ModelError(f'{"/".join(parts)} not found in {[str(c) for c in candidates]}')
+
+
+def default_urdf_path() -> Path:
+    """The arm's URDF (config/ddarm.urdf)."""
+    return config_file(URDF_NAME)
 
 
 def same_urdf(first: str | Path | None, second: str | Path | None) -> bool:
