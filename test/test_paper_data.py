@@ -65,8 +65,8 @@ def test_the_settings_hold_what_the_code_held():
         assert (procedure.case, dict(procedure.disturbance), procedure.max_error_deg) == (case, disturbance, max_error)
     assert settings.stability.periods == (0.005, 0.01, 0.02, 0.025, 0.04, 0.05)
     assert (settings.stability.omega, settings.stability.claimed_period) == (15.0, 0.01)
-    assert Budget.full() == Budget(search_episodes=12000, de_popsize=15, taus=TAUS, pareto_episodes=6000,
-                                   robust_episodes=8000)
+    assert Budget.full() == Budget(search_episodes=36000, de_popsize=15, taus=TAUS, pareto_episodes=12000,
+                                   robust_episodes=16000)
     assert Budget.quick() == Budget(search_episodes=1200, de_popsize=8, taus=(0.0, 0.05, 0.1), pareto_episodes=1000,
                                     robust_episodes=1600)
     assert settings.claims.table4_I1_ratio == Range(1.5, 4.0)  # what claims.py held before it was data
