@@ -135,7 +135,7 @@ def main() -> None:
     episodes = engine()
     largest = max(np.max(np.abs(first / plan.k_max - episodes.I1) / episodes.I1),
                   np.max(np.abs(second / plan.k_max - episodes.I2) / episodes.I2))
-    if largest > 1e-9:
+    if not largest <= 1e-9:
         raise SystemExit(f'the closed-form loop and the engine disagree: largest relative index difference {largest:.3g}')
     best = {'closed_form': np.inf, 'ddarm': np.inf}
     for _ in range(options.rounds):

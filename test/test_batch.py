@@ -188,10 +188,39 @@ def test_any_serial_urdf_arm_runs_as_in_the_reference_loop(tmp_path, controller)
         assert_member_matches(batch, member, scalar)
 
 
+# A tree (two branches from l1) with joints along -x, +z, -z, -y and a prismatic -x: the generated code's
+# exact-axis rotations of every sign, and a parent that is not the joint before.
+TREE_URDF = """<?xml version="1.0"?>
+<robot name="tree5">
+  <link name="base"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
+    <origin xyz="0 0 0.2" rpy="0 0 0"/><axis xyz="-1 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l1"><inertial><origin xyz="0 0.1 0.1"/><mass value="2.0"/>
+    <inertia ixx="0.2" ixy="0.01" ixz="0" iyy="0.3" iyz="0.02" izz="0.1"/></inertial></link>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0 0.3 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l2"><inertial><origin xyz="0.2 0 0"/><mass value="1.0"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.05" iyz="0" izz="0.05"/></inertial></link>
+  <joint name="j3" type="revolute"><parent link="l1"/><child link="l3"/>
+    <origin xyz="0 -0.3 0" rpy="0.3 0 0"/><axis xyz="0 0 -1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l3"><inertial><origin xyz="0.1 0.05 0"/><mass value="1.5"/>
+    <inertia ixx="0.02" ixy="0" ixz="0.003" iyy="0.04" iyz="0" izz="0.03"/></inertial></link>
+  <joint name="j4" type="revolute"><parent link="l2"/><child link="l4"/>
+    <origin xyz="0.4 0 0" rpy="0 0 0.2"/><axis xyz="0 -1 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <link name="l4"><inertial><origin xyz="0.15 0 0"/><mass value="0.7"/>
+    <inertia ixx="0.005" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.02"/></inertial></link>
+  <joint name="j5" type="prismatic"><parent link="l3"/><child link="l5"/>
+    <origin xyz="0.2 0 0" rpy="0 0.4 0"/><axis xyz="-1 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <link name="l5"><inertial><origin xyz="0 0 0.05"/><mass value="0.5"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.005"/></inertial></link>
+</robot>
+"""
+
+
 def pinocchio_model(name):
-    """The paper's arm or the generic one above, with a non-zero armature on every joint."""
+    """The paper's arm, the generic one or the tree above, with a non-zero armature on every joint."""
     model = pin.buildModelFromUrdf(str(ROOT / 'config' / 'ddarm.urdf')) if name == 'paper' else (
-        pin.buildModelFromXML(GENERIC_URDF))
+        pin.buildModelFromXML(GENERIC_URDF if name == 'generic' else TREE_URDF))
     model.armature = np.linspace(0.05, 0.3, model.nv)
     return model
 
@@ -222,7 +251,7 @@ def scaled(model, mass_scale):
     return model
 
 
-@pytest.mark.parametrize('name', ['paper', 'generic'])
+@pytest.mark.parametrize('name', ['paper', 'generic', 'tree'])
 @pytest.mark.parametrize('with_scale', [False, True])
 def test_the_compiled_dynamics_are_pinocchios_rnea_crba_and_aba(name, with_scale):
     # Random states, armature on every joint, revolute and prismatic joints (generic), a plant mass scale.

@@ -17,8 +17,10 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import os
+import stat
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -58,7 +60,7 @@ class Chain:
         return len(self.parent)
 
     def arrays(self) -> tuple:
-        """The fields in the order the compiled functions unpack them."""
+        """Every field, in one fixed order."""
         return (self.parent, self.kind, self.axis, self.rotation, self.translation, self.armature, self.gravity,
                 self.mass, self.lever, self.inertia)
 
@@ -135,47 +137,68 @@ class Dynamics:
     inverse_dynamics: CompileResultWAP
 
 
+_process_folder: Path | None = None
+
+
+def _private_folder(folder: Path) -> Path | None:
+    """`folder`, made if missing, if it is a real folder of this user that no one else may write (numba
+    unpickles what it finds there); else None."""
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        status = os.lstat(folder)
+    except OSError:
+        return None
+    if (not stat.S_ISDIR(status.st_mode) or status.st_uid != os.getuid() or status.st_mode & 0o022
+            or not os.access(folder, os.W_OK)):
+        return None
+    return folder
+
+
 def cache_folder() -> Path:
     """Where generated dynamics and their compiled code are kept: $DDARM_CACHE_DIR, else the user's
-    cache folder ($XDG_CACHE_HOME or ~/.cache)/ddarm, else (read-only home) the temporary folder."""
+    cache folder ($XDG_CACHE_HOME or ~/.cache)/ddarm, else (a home that cannot be written) a private
+    folder of this user in the temporary folder."""
     given = os.environ.get(CACHE_ENVIRONMENT)
     if given:
         return Path(given)
     base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
-    folder = Path(base) / 'ddarm'
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return Path(tempfile.gettempdir()) / f'ddarm-{os.getuid()}'
-    if not os.access(folder, os.W_OK):
-        return Path(tempfile.gettempdir()) / f'ddarm-{os.getuid()}'
-    return folder
+    for folder in (Path(base) / 'ddarm', Path(tempfile.gettempdir()) / f'ddarm-{os.getuid()}'):
+        if _private_folder(folder) is not None:
+            return folder
+    global _process_folder
+    if _process_folder is None:  # this process's own: its compiled code is not kept beyond it
+        _process_folder = Path(tempfile.mkdtemp(prefix='ddarm-'))
+    return _process_folder
 
 
 def _module_file(source: str) -> tuple[str, Path]:
     """The generated module's name and file, written once: a file already there is never rewritten, since
     numba's cache of it is stamped with its modification time (many processes may ask at once)."""
-    digest = hashlib.sha256(source.encode()).hexdigest()[:24]
-    name = f'ddarm_dynamics_{digest}'
+    content = source.encode('utf-8')
+    name = f'ddarm_dynamics_{hashlib.sha256(content).hexdigest()[:24]}'
     folder = cache_folder() / 'dynamics'
     path = folder / f'{name}.py'
-    if path.is_file() and path.read_text() == source:
-        return name, path
+    draft = None
     try:
+        if path.is_file() and path.read_bytes() == content:
+            return name, path
         folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile('w', dir=folder, suffix='.tmp', delete=False) as draft:
-            draft.write(source)
+        with tempfile.NamedTemporaryFile('wb', dir=folder, suffix='.tmp', delete=False) as file:
+            draft = file.name
+            file.write(content)
         try:
-            os.link(draft.name, path)  # fails if another process wrote it first: its file stands
+            os.link(draft, path)  # fails if another process wrote it first: its file stands
         except FileExistsError:
-            if path.read_text() != source:
-                os.replace(draft.name, path)
-        finally:
-            if os.path.exists(draft.name):
-                os.unlink(draft.name)
+            if path.read_bytes() != content:
+                os.replace(draft, path)
+        except OSError:  # a file system without hard links
+            os.replace(draft, path)
     except OSError as error:
-        raise ModelError(f'cannot write the arm\'s generated dynamics to {folder}: {error.strerror}; '
-                         f'set {CACHE_ENVIRONMENT} to a writable folder') from error
+        raise ModelError(f'cannot write the arm\'s generated dynamics to {folder}: {error.strerror or error}; '
+                         f'set {CACHE_ENVIRONMENT} to a folder this user can write') from error
+    finally:
+        if draft is not None and os.path.exists(draft):
+            os.unlink(draft)
     return name, path
 
 
@@ -184,23 +207,27 @@ def _chain_key(chain: Chain) -> bytes:
 
 
 _loaded: dict[bytes, Dynamics] = {}
+# A module numba is compiling must not be seen by another thread (the searches' and the nodes' threads
+# ask for the same chain): one thread loads at a time.
+_loading = threading.Lock()
 
 
 def compiled_dynamics(chain: Chain) -> Dynamics:
     """The chain's generated dynamics, compiled (or loaded from numba's cache), once per process and chain."""
     key = _chain_key(chain)
-    if key not in _loaded:
-        from ddarm.physics.generated import dynamics_source
-        name, path = _module_file(dynamics_source(chain))
-        module = sys.modules.get(name)
-        if module is None:
-            spec = importlib.util.spec_from_file_location(name, path)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[name] = module
-            spec.loader.exec_module(module)
-        _loaded[key] = Dynamics(chain, *(CompileResultWAP(kernel.overloads[KERNEL_SIGNATURE.args])
-                                         for kernel in (module.forward_dynamics, module.inverse_dynamics)))
-    return _loaded[key]
+    with _loading:
+        if key not in _loaded:
+            from ddarm.physics.generated import dynamics_source
+            name, path = _module_file(dynamics_source(chain))
+            module = sys.modules.get(name)
+            if module is None:
+                spec = importlib.util.spec_from_file_location(name, path)
+                module = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(module)
+                sys.modules[name] = module
+            _loaded[key] = Dynamics(chain, *(CompileResultWAP(kernel.overloads[KERNEL_SIGNATURE.args])
+                                             for kernel in (module.forward_dynamics, module.inverse_dynamics)))
+        return _loaded[key]
 
 
 def _lanes(values, n: int, lanes: int) -> np.ndarray:
@@ -211,6 +238,8 @@ def _lanes(values, n: int, lanes: int) -> np.ndarray:
 def _evaluate(kernel, chain: Chain, q, v, third, mass_scale) -> np.ndarray:
     q = np.ascontiguousarray(np.transpose(np.atleast_2d(np.asarray(q, dtype=float))))
     n, lanes = q.shape
+    if n != chain.dof:  # the compiled code reads and writes `dof` rows without bounds checks
+        raise ValueError(f'states must have {chain.dof} joint values each, got {n}')
     scale = np.ones((n, lanes)) if mass_scale is None else _lanes(mass_scale, n, lanes)
     out = np.empty((n, lanes))
     kernel(scale, q, _lanes(v, n, lanes), _lanes(third, n, lanes), out, lanes)

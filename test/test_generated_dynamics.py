@@ -1,0 +1,122 @@
+"""The generated dynamics' cache (ddarm.physics.dynamics): where it lives, that a module is written once and
+never half-seen, and refusals. Their numbers are checked against Pinocchio in test_batch.py and test_arms.py."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from ddarm.physics import dynamics
+from ddarm.physics.arm import ModelError
+from ddarm.physics.dynamics import cache_folder, compiled_dynamics, forward_dynamics_at, inverse_dynamics_at, load_chain
+from ddarm.physics.generated import dynamics_source
+
+
+@pytest.fixture
+def fresh_cache(tmp_path, monkeypatch):
+    """An empty cache folder, and no chain loaded yet in this process."""
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(tmp_path / 'cache'))
+    monkeypatch.setattr(dynamics, '_loaded', {})
+    return tmp_path / 'cache'
+
+
+def shifted_chain(shift: float):
+    """The paper's arm with link 3 a little heavier: a chain whose code no cache holds yet."""
+    chain = load_chain(None)
+    mass = chain.mass.copy()
+    mass[2] += shift
+    return dynamics.Chain(**{**chain.__dict__, 'mass': mass})
+
+
+def test_the_cache_is_the_named_folder_else_the_users_else_a_private_temporary_one(tmp_path, monkeypatch):
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(tmp_path / 'given'))
+    assert cache_folder() == tmp_path / 'given'
+    monkeypatch.delenv(dynamics.CACHE_ENVIRONMENT)
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'xdg'))
+    assert cache_folder() == tmp_path / 'xdg' / 'ddarm'
+    # A cache home that cannot be used (here a file where the folder should be): the user's private temporary one.
+    (tmp_path / 'blocked').write_text('')
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'blocked'))
+    monkeypatch.setenv('TMPDIR', str(tmp_path / 'tmp'))
+    (tmp_path / 'tmp').mkdir()
+    monkeypatch.setattr(dynamics.tempfile, 'tempdir', None)
+    private = cache_folder()
+    assert private == tmp_path / 'tmp' / f'ddarm-{os.getuid()}'
+    assert private.stat().st_mode & 0o077 == 0
+
+
+def test_a_temporary_folder_others_may_write_is_not_used(tmp_path, monkeypatch):
+    (tmp_path / 'blocked').write_text('')
+    monkeypatch.delenv(dynamics.CACHE_ENVIRONMENT, raising=False)
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path / 'blocked'))
+    (tmp_path / 'tmp').mkdir()
+    monkeypatch.setenv('TMPDIR', str(tmp_path / 'tmp'))
+    monkeypatch.setattr(dynamics.tempfile, 'tempdir', None)
+    shared = tmp_path / 'tmp' / f'ddarm-{os.getuid()}'
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)
+    monkeypatch.setattr(dynamics, '_process_folder', None)
+    folder = cache_folder()
+    assert folder != shared and folder.parent == tmp_path / 'tmp' and folder.stat().st_mode & 0o077 == 0
+    assert cache_folder() == folder  # one per process
+
+
+def test_a_module_is_written_once_and_a_corrupted_one_is_replaced(fresh_cache):
+    source = dynamics_source(shifted_chain(0.25))
+    name, path = dynamics._module_file(source)
+    assert path.parent == fresh_cache / 'dynamics' and path.read_text(encoding='utf-8') == source
+    stamp = path.stat().st_mtime_ns
+    assert dynamics._module_file(source) == (name, path) and path.stat().st_mtime_ns == stamp  # numba's stamp holds
+    path.write_text('broken')
+    dynamics._module_file(source)
+    assert path.read_text(encoding='utf-8') == source
+    assert [file.name for file in path.parent.iterdir() if file.suffix == '.tmp'] == []
+
+
+def test_threads_asking_for_a_new_chain_at_once_all_get_its_compiled_dynamics(fresh_cache):
+    chain = shifted_chain(0.5)
+    results, errors = [], []
+
+    def ask():
+        try:
+            results.append(compiled_dynamics(chain))
+        except Exception as error:  # noqa: BLE001 - the test reports whatever a thread met
+            errors.append(error)
+
+    threads = [threading.Thread(target=ask) for _ in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert errors == [] and len({id(result) for result in results}) == 1
+    q = np.array([[0.1, 0.4, -0.3]])
+    torque = inverse_dynamics_at(chain, q, np.zeros((1, 3)), np.array([[1.0, 2.0, 3.0]]))
+    np.testing.assert_allclose(forward_dynamics_at(chain, q, np.zeros((1, 3)), torque), [[1.0, 2.0, 3.0]],
+                               rtol=1e-12)
+
+
+def test_a_folder_that_cannot_be_written_is_named_in_the_error(tmp_path, monkeypatch):
+    (tmp_path / 'file').write_text('')
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(tmp_path / 'file'))
+    monkeypatch.setattr(dynamics, '_loaded', {})
+    with pytest.raises(ModelError, match=f'{tmp_path / "file"}.*{dynamics.CACHE_ENVIRONMENT}'):
+        compiled_dynamics(shifted_chain(0.75))
+
+
+def test_states_of_the_wrong_length_are_refused_before_the_compiled_code_runs():
+    chain = load_chain(None)
+    with pytest.raises(ValueError, match='3 joint values'):
+        inverse_dynamics_at(chain, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))
+
+
+def test_a_chain_with_a_non_finite_constant_or_no_inertia_on_a_joint_is_refused():
+    chain = load_chain(None)
+    with pytest.raises(ModelError, match='non-finite'):
+        dynamics_source(dynamics.Chain(**{**chain.__dict__, 'mass': np.array([1.0, np.inf, 10.0])}))
+    # Link 1 is a point mass on joint 1's axis: with no inertia about z and no armature, M11 is 0 everywhere.
+    massless = dynamics.Chain(**{**chain.__dict__, 'inertia': np.zeros((3, 3, 3)), 'mass': np.zeros(3)})
+    with pytest.raises(ModelError, match='singular'):
+        dynamics_source(massless)
