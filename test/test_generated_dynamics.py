@@ -4,6 +4,8 @@ never half-seen, and refusals. Their numbers are checked against Pinocchio in te
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -120,3 +122,20 @@ def test_a_chain_with_a_non_finite_constant_or_no_inertia_on_a_joint_is_refused(
     massless = dynamics.Chain(**{**chain.__dict__, 'inertia': np.zeros((3, 3, 3)), 'mass': np.zeros(3)})
     with pytest.raises(ModelError, match='singular'):
         dynamics_source(massless)
+
+
+def test_a_second_process_loads_the_compiled_dynamics_the_first_one_cached(tmp_path):
+    # numba rebuilds a cached function's environment by importing its module by name: the second
+    # process takes the cache's path, which the first one (compiling) does not.
+    script = ('import sys; import numpy as np; from ddarm.physics import dynamics; '
+              'chain = dynamics.load_chain(None); '
+              'chain = dynamics.Chain(**{**chain.__dict__, "mass": chain.mass + [0, 0, 1.5]}); '
+              'print(dynamics.inverse_dynamics_at(chain, np.array([[0.1, 0.4, -0.3]]), np.ones((1, 3)), '
+              'np.ones((1, 3))).tolist())')
+    environment = {**os.environ, dynamics.CACHE_ENVIRONMENT: str(tmp_path / 'cache')}
+    runs = [subprocess.run([sys.executable, '-c', script], env=environment, capture_output=True, text=True,
+                           timeout=300) for _ in range(2)]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    assert runs[0].stdout == runs[1].stdout
+    assert list((tmp_path / 'cache' / 'dynamics' / '__pycache__').glob('*.nbi'))

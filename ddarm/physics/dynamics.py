@@ -223,8 +223,13 @@ def compiled_dynamics(chain: Chain) -> Dynamics:
             if module is None:
                 spec = importlib.util.spec_from_file_location(name, path)
                 module = importlib.util.module_from_spec(spec)
-                spec.loader.exec_module(module)
+                # numba finds the module of compiled code by name, also when it loads it from its cache.
                 sys.modules[name] = module
+                try:
+                    spec.loader.exec_module(module)
+                except BaseException:
+                    del sys.modules[name]
+                    raise
             _loaded[key] = Dynamics(chain, *(CompileResultWAP(kernel.overloads[KERNEL_SIGNATURE.args])
                                              for kernel in (module.forward_dynamics, module.inverse_dynamics)))
         return _loaded[key]
