@@ -29,7 +29,8 @@ from ddarm.episodes.engine import run_episode, simulate_batch
 from ddarm.episodes.spec import (EpisodeError, EpisodeSpec, check_episode, gains_from_omega, model_arm, plan_episode, plant_arm,
                                  plant_chain)
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import chain_from_model, forward_dynamics_at, inverse_dynamics_at
+from ddarm.physics.dynamics import chain_from_model, inverse_dynamics_at
+from dynamics_checks import compiled_mass_matrix_and_acceleration
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMS_DIR = ROOT / 'config' / 'arms'
@@ -257,21 +258,11 @@ def random_positions(arm: Arm, rng, count: int) -> np.ndarray:
     return rng.uniform(lower, upper, (count, arm.dof))
 
 
-def compiled_mass_and_acceleration(chain, q, v, torque):
-    """M(q) and q̈ by the compiled forward dynamics, states (m, n): M⁻¹'s column j is q̈ at q̇ = 0 under
-    G(q) + e_j, so M comes from the forward dynamics' own CRBA and Cholesky, not from the RNEA."""
-    n, count = chain.dof, len(q)
-    gravity = inverse_dynamics_at(chain, q, np.zeros_like(q), np.zeros_like(q))
-    inverse = np.stack([forward_dynamics_at(chain, q, np.zeros_like(q), gravity + np.eye(n)[j]) for j in range(n)],
-                       axis=-1)
-    return np.linalg.inv(inverse), forward_dynamics_at(chain, q, v, torque)
-
-
 def assert_dynamics_match(arm: Arm, chain, reference: Dynamics, q, v, a) -> None:
     """Arm's Pinocchio calls and the compiled chain against the independent model, at states (m, n)."""
     torque = inverse_dynamics_at(chain, q, v, a)
     gravity = inverse_dynamics_at(chain, q, np.zeros_like(v), np.zeros_like(a))
-    mass, acceleration = compiled_mass_and_acceleration(chain, q, v, torque)
+    mass, acceleration = compiled_mass_matrix_and_acceleration(chain, q, v, torque)
     for m in range(len(q)):
         expected_mass = reference.mass(q[m])
         scale_mass = np.max(np.abs(expected_mass))

@@ -11,11 +11,12 @@ import pinocchio as pin
 import pytest
 
 from ddarm.physics.arm import ModelError
-from ddarm.physics.dynamics import chain_from_model, forward_dynamics_at, inverse_dynamics_at
+from ddarm.physics.dynamics import chain_from_model, inverse_dynamics_at
 from ddarm.motion.programmed import ProgrammedMotion
 from ddarm.episodes.engine import MAX_BATCH, BatchError, run_episode, simulate_batch
 from ddarm.cli.main import main
 from ddarm.episodes.spec import EpisodeSpec, plan_episode, plan_motion
+from dynamics_checks import compiled_mass_matrix_and_acceleration
 from reference_episode import reference_episode
 
 CT_15 = dict(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
@@ -229,17 +230,6 @@ def random_states(model, count, seed):
     rng = np.random.default_rng(seed)
     return (rng.uniform(-np.pi, np.pi, (count, model.nv)), rng.uniform(-3, 3, (count, model.nv)),
             rng.uniform(-10, 10, (count, model.nv)))
-
-
-def compiled_mass_matrix_and_acceleration(chain, q, v, torque, mass_scale):
-    """M(q) and q̈ by the compiled forward dynamics, for the states of q, v, torque (m, n): M⁻¹'s column j is
-    q̈ at q̇ = 0 under G(q) + e_j, so M comes from the forward dynamics' own CRBA and Cholesky."""
-    n = chain.dof
-    zero = np.zeros_like(q)
-    gravity = inverse_dynamics_at(chain, q, zero, zero, mass_scale=mass_scale)
-    inverse = np.stack([forward_dynamics_at(chain, q, zero, gravity + np.eye(n)[j], mass_scale=mass_scale)
-                        for j in range(n)], axis=-1)
-    return np.linalg.inv(inverse), forward_dynamics_at(chain, q, v, torque, mass_scale=mass_scale)
 
 
 def scaled(model, mass_scale):
