@@ -29,9 +29,14 @@ def sample_at(t: float, period: float) -> int:
     return int(n)
 
 
-def joint_order(names, joints: list[str], what: str) -> np.ndarray:
-    """Indices that put the message's joints in our order; refuses unknown, missing or duplicate names."""
+def joint_order(names, joints: list[str], what: str) -> np.ndarray | slice:
+    """Indices that put the message's joints in our order; refuses unknown, missing or duplicate names.
+
+    Our own order (what ddarm's nodes send) is the whole slice: a message read at every sample costs no copy.
+    """
     names = list(names)
+    if names == list(joints):
+        return slice(None)
     if len(names) > MAX_JOINTS:
         raise MessageError(f'{what}: {len(names)} joint names is more than the {MAX_JOINTS} allowed')
     if len(set(names)) != len(names):
@@ -48,8 +53,8 @@ def finite_array(values, name: str, field: str, expected: int) -> np.ndarray:
     if len(values) != expected:
         raise MessageError(f'{name}: {field} has {len(values)} values for {expected} joints')
     array = np.array(values, dtype=float)
-    bad = np.flatnonzero(~np.isfinite(array))
-    if bad.size:
+    if not np.isfinite(array).all():
+        bad = np.flatnonzero(~np.isfinite(array))
         raise MessageError(f'{name}: {field} is not finite at index {bad.tolist()}: {array[bad].tolist()}')
     return array
 

@@ -2,6 +2,7 @@
 they end in; the rows keep the tables' order, and the law's nodes are switched as seldom as the order allows."""
 
 import dataclasses
+import threading
 
 import pytest
 
@@ -33,13 +34,16 @@ class Searches:
     def __init__(self, found: dict, order: list) -> None:
         self.found, self.order, self.results = found, list(order), {}
         self.labels = {key: str(key) for key in found}
+        self.lock = threading.Lock()  # several recorders' threads wait at once
 
     def ready(self, keys) -> bool:
         return all(key in self.results for key in keys)
 
     def wait_for_change(self) -> None:
-        key = self.order.pop(0)
-        self.results[key] = self.found[key]
+        with self.lock:
+            if self.order:
+                key = self.order.pop(0)
+                self.results[key] = self.found[key]
 
     def wait(self, keys=None) -> dict:
         keys = list(self.found) if keys is None else keys
@@ -100,3 +104,40 @@ def test_the_nodes_of_the_next_law_are_started_while_its_searches_run(tmp_path, 
     assert all(law == 'computed_torque' for _, law, _ in after)  # PD + gravity was done, computed torque's nodes up
     assert [law for kind, law, _ in before if kind == 'run'][-1] == 'pd_gravity'
     assert _switches(recorder.events) == 2  # computed torque's episodes that need no search, PD + gravity's, back
+
+
+
+def _table_rows(results):
+    """Every row of the tables, as results.json holds them (with the bag each is scored from)."""
+    return [row for rows in (results.table2, results.table3, results.table4, results.section2.omega_rules,
+                             results.robust.rows, results.section2.stability) for row in rows]
+
+
+@pytest.mark.parametrize('ending', ['in order', 'reversed'])
+def test_several_recorders_run_every_episode_once_and_give_the_same_rows(tmp_path, found, ending):
+    budget, results = found
+    order = list(results) if ending == 'in order' else list(reversed(results))
+    rows = {}
+    for count in (1, 3):
+        out = tmp_path / str(count)
+        (out / 'bags').mkdir(parents=True)
+        recorders = [Recorder() for _ in range(count)]
+        reproduction = Reproduction(out, budget, 'ddarm reproduce')
+        reproduction.run_episodes(recorders if count > 1 else recorders[0], Searches(results, order))
+        ran = [bag for recorder in recorders for kind, _, bag in recorder.events if kind == 'run']
+        assert len(ran) == len(set(ran)) == 2 * (2 * len(budget.taus) + len(budget.taus) + 4 + 2) + 8 + 6
+        rows[count] = _table_rows(reproduction.results)
+    assert rows[1] == rows[3]
+
+
+class FailingRecorder(Recorder):
+    def record_and_score(self, spec, bag, command=None):
+        raise RuntimeError(f'no graph for {bag.name}')
+
+
+def test_a_failing_recorder_stops_the_run_with_its_error(tmp_path, found):
+    budget, results = found
+    (tmp_path / 'bags').mkdir()
+    with pytest.raises(RuntimeError, match='no graph for'):
+        Reproduction(tmp_path, budget, 'ddarm reproduce').run_episodes([Recorder(), FailingRecorder()],
+                                                                      Searches(results, list(results)))

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ddarm.cli.arguments import absolute_path
+from ddarm.cli.arguments import absolute_path, whole_number
 from ddarm.episodes.bench import (BATCH_SIZES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES, batch_rates,
                                   reference_case, run_bench)
 from ddarm.physics.arm import config_file
@@ -33,6 +33,10 @@ def command_bench(args: argparse.Namespace) -> int:
     arm = reference_case(urdf, motion)
     figures['many_joint_arm'] = {'urdf': urdf, 'motion': motion, 'joints': len(arm.kp),
                                  'batch_sizes': batch_rates(arm, BATCH_SIZES, args.seed, args.threads)}
+    if args.ros:
+        from ddarm.ros.bench import lockstep_and_round_trips
+
+        figures['ros'] = lockstep_and_round_trips(args.ros_rounds)
     if args.json:
         print(json.dumps(figures))
         return 0
@@ -54,6 +58,16 @@ def command_bench(args: argparse.Namespace) -> int:
                          (f"{many['joints']}-joint arm ({Path(many['urdf']).name}, ω = 15 rule)", many['batch_sizes'])):
         print(f"  batch sizes, {label}: " + ', '.join(f"B = {rate['B']}: {rate['episodes_per_s']:.0f}"
                                                      for rate in rates) + ' episodes/s')
+    if args.ros:
+        ros = figures['ros']
+        print(f"  ROS lockstep : {ros['case']}, {ros['samples']} samples, against {ros['round_trips']} bare round "
+              'trips of a 3-joint JointState between two processes, alternately:')
+        for number, round_figures in enumerate(ros['rounds']):
+            print(f"    round {number}: {round_figures['lockstep_samples_per_s']:7.0f} samples/s "
+                  f"({round_figures['episode_samples_per_s']:.0f} over the whole episode) against "
+                  f"{round_figures['round_trips_per_s']:7.0f} round trips/s (p50 {round_figures['round_trip_p50_ms']:.3f}"
+                  f" ms): ratio {round_figures['ratio']:.2f}")
+        print(f"    median ratio {ros['median_ratio']:.2f}")
     return 0
 
 
@@ -70,5 +84,10 @@ def add_bench_parser(commands) -> None:
     bench.add_argument('--urdf', metavar='FILE', help="another arm (default: the paper's); with --motion")
     bench.add_argument('--motion', metavar='FILE.yaml', help="the motion on that arm (default: the paper's "
                        'trajectory 1)')
+    bench.add_argument('--ros', action='store_true',
+                       help='also lockstep samples/s through the ROS graph against the bare DDS round trip, '
+                            'alternately (about a minute)')
+    bench.add_argument('--ros-rounds', type=whole_number(1, 100), default=3, metavar='R',
+                       help='rounds of the ROS comparison (3)')
     bench.add_argument('--json', action='store_true', help='print one JSON object')
     bench.set_defaults(handler=command_bench)

@@ -82,8 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument('--quick', action='store_true',
                            help='small search budgets and three τ values: a first look in well under a minute')
     reproduce.add_argument('--jobs', type=job_count, metavar='N',
-                           help='searches run at once, each a process with its share of the cores; the results do '
-                                'not depend on it (default: the cores this process may use)')
+                           help='searches run at once, each a process with its share of the cores, and graph '
+                                'sessions recording episodes at once; the results do not depend on it (default: '
+                                'the cores this process may use)')
     reproduce.set_defaults(handler=command_reproduce)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')

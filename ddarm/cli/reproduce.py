@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import shlex
 import sys
@@ -42,14 +43,19 @@ def command_reproduce(args: argparse.Namespace) -> int:
                                         total, label, index_name=index_name, position=position))
         # The searches first: their workers come up while this process starts the ROS graph. Each reported
         # episode runs as soon as the searches it needs are done, while the others go on.
-        with reproduction.start_searches(args.jobs or default_workers()) as searches:
+        jobs = args.jobs or default_workers()
+        with reproduction.start_searches(jobs) as searches:
             from ddarm.ros.session import GraphSession
 
-            with GraphSession(out / 'nodes') as session:
-                session.prepare(reproduction.first_episode())
-                progress('every reported episode runs through the ROS graph (lockstep), recorded, as its gains '
-                         'are found')
-                reproduction.run_episodes(session, searches)
+            with contextlib.ExitStack() as sessions:
+                # As many graph sessions as searches, each in a namespace of its own with its own nodes.
+                recorders = [sessions.enter_context(GraphSession(out / 'nodes' / f'session-{number}'))
+                             for number in range(jobs)]
+                for session in recorders:
+                    session.prepare(reproduction.first_episode())
+                progress(f'every reported episode runs through the ROS graph (lockstep, {jobs} session'
+                         f"{'s' if jobs > 1 else ''}), recorded, as its gains are found")
+                reproduction.run_episodes(recorders, searches)
         reproduction.judge_claims()
         results = reproduction.results
         results.wall_time_s = time.perf_counter() - started

@@ -8,6 +8,7 @@ ddarm.paper.schema.Results. Nothing here needs ROS: the recorder is handed in.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -28,7 +29,8 @@ from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.pareto import pareto_front
-from ddarm.tuning.jobs import BackgroundJobs, Job, JobError
+from ddarm.interrupts import check_stop
+from ddarm.tuning.jobs import POLL_S, BackgroundJobs, Job, JobError
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
@@ -218,47 +220,36 @@ class Reproduction:
             for delay in beyond.stability_map.delays for zeta in beyond.stability_map.zetas]
         return gains
 
-    def run_episodes(self, recorder: EpisodeRecorder, searches: BackgroundJobs) -> None:
-        """Every reported episode through `recorder`, each group as soon as the searches it needs are done (while
+    def run_episodes(self, recorders: EpisodeRecorder | list[EpisodeRecorder], searches: BackgroundJobs) -> None:
+        """Every reported episode through `recorders`, each group as soon as the searches it needs are done (while
         the others go on), then the searches' results into `results`.
 
-        Among the groups ready, the current law's come first: the session starts a controller process
-        for each switch of law. The rows are kept in the order of the tables, whatever order they ran in.
+        With several recorders (graph sessions), each runs groups in a thread of its own, as they become ready:
+        the same episodes, the same bags, in less time. Among the groups ready, a recorder's current law's come
+        first: a session starts a controller process for each switch of law. The rows are kept in the order of
+        the tables, whatever order they ran in.
         """
+        recorders = list(recorders) if isinstance(recorders, (list, tuple)) else [recorders]
         case, beyond = self.settings.case, self.settings.beyond
-        groups = []  # (law, the searches it needs, what runs it)
+        groups = []  # (law, the searches it needs, what runs it on a recorder)
         for controller in self._laws():
             groups += [
                 (controller, ((controller, 'I1', case), (controller, 'I', case)),
-                 lambda found, law=controller: self._tables_2_and_3(recorder, found, law)),
+                 lambda recorder, found, law=controller: self._tables_2_and_3(recorder, found, law)),
                 (controller, tuple((controller, 'I', table4) for table4 in self.settings.table4_cases),
-                 lambda found, law=controller: self._table4(recorder, found, law)),
-                (controller, (), lambda found, law=controller: self._section2(recorder, law))]
-        groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)), lambda found: self._robust(recorder, found)),
-                   ('computed_torque', (), lambda found: self._stability(recorder))]
+                 lambda recorder, found, law=controller: self._table4(recorder, found, law)),
+                (controller, (), lambda recorder, found, law=controller: self._section2(recorder, law))]
+        groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)),
+                    lambda recorder, found: self._robust(recorder, found)),
+                   ('computed_torque', (), lambda recorder, found: self._stability(recorder))]
         unknown = sorted({str(key) for group in groups for key in group[1] if key not in searches.labels})
         if unknown:
             raise JobError(f'the reported episodes need searches that are not run: {unknown}')
-        law = None
-        while groups:
-            ready = [group for group in groups if searches.ready(group[1])]
-            law_done = all(group[0] != law for group in groups)
-            # Another law's episodes switch the nodes when they waited for a search, or when this law has no more:
-            # the episodes that need no search can wait for their law's turn.
-            choices = ([group for group in ready if group[0] == law]
-                       or [group for group in ready if group[1] or law_done])
-            if not choices:
-                if law is not None and law_done:
-                    # The current law is done and the other's next episodes wait for a search: switch the nodes
-                    # now, while it runs, not after.
-                    law = groups[0][0]
-                    recorder.prepare(_template(law, case))
-                searches.wait_for_change()
-                continue
-            group = choices[0]
-            groups.remove(group)
-            law = group[0]
-            group[2](searches.wait(group[1]))
+        schedule = _Schedule(groups, searches, lambda recorder, law: recorder.prepare(_template(law, case)))
+        if len(recorders) == 1:
+            schedule.work(recorders[0])
+        else:
+            schedule.work_on(recorders)
         order = {controller: rank for rank, controller in enumerate(CONTROLLERS)}
         for rows in (self.results.table2, self.results.table3, self.results.table4,
                      self.results.section2.omega_rules, self.results.section2.omega_procedure):
@@ -350,3 +341,78 @@ class Reproduction:
 
     def judge_claims(self) -> None:
         self.results.claims = judge_claims(self.results, self.settings)
+
+
+class _Schedule:
+    """The groups of reported episodes still to run, handed to recorders as their searches end.
+
+    A recorder keeps to its law while that law has groups ready; it switches when another law's
+    group waited for a search, or when its law has none left (the episodes that need no search
+    wait for their law's turn). One thread per recorder (`work_on`): the groups are taken under a
+    lock, and a failure in one thread stops the others after their episode under way.
+    """
+
+    def __init__(self, groups: list, searches, prepare) -> None:
+        self.groups, self.searches, self.prepare = list(groups), searches, prepare
+        self.lock = threading.Lock()
+        self.failed = threading.Event()
+
+    def _next(self, law: str | None, recorder) -> tuple | None:
+        """The next group for a recorder whose nodes run `law`; None once no group is left (or another thread failed)."""
+        while not self.failed.is_set():
+            with self.lock:
+                if not self.groups:
+                    return None
+                ready = [group for group in self.groups if self.searches.ready(group[1])]
+                law_done = all(group[0] != law for group in self.groups)
+                choices = ([group for group in ready if group[0] == law]
+                           or [group for group in ready if group[1] or law_done])
+                if choices:
+                    self.groups.remove(choices[0])
+                    return choices[0]
+                if law is not None and law_done:
+                    # This law is done and the other's next episodes wait for a search: switch the nodes now,
+                    # while it runs, not after.
+                    law = self.groups[0][0]
+                    self.prepare(recorder, law)
+            self.searches.wait_for_change()
+        return None
+
+    def work(self, recorder) -> None:
+        """Run groups on `recorder` until none is left."""
+        law = None
+        while (group := self._next(law, recorder)) is not None:
+            law = group[0]
+            group[2](recorder, self.searches.wait(group[1]))
+
+    def work_on(self, recorders: list) -> None:
+        """`work` on every recorder at once, one thread each; the first failure (or a stop) is raised here.
+
+        A session's node processes end with the thread that started them (`ddarm.ros.lifetime`): each
+        recorder is used by one thread only, which lives until its last episode is done.
+        """
+        errors = []
+
+        def run(recorder) -> None:
+            try:
+                self.work(recorder)
+            except BaseException as error:  # handed to the calling thread, which raises it
+                errors.append(error)
+                self.failed.set()
+
+        threads = [threading.Thread(target=run, args=(recorder,), name=f'ddarm-episodes-{number}')
+                   for number, recorder in enumerate(recorders)]
+        for thread in threads:
+            thread.start()
+        try:
+            for thread in threads:
+                while thread.is_alive():
+                    thread.join(POLL_S)
+                    check_stop()
+        except BaseException:
+            self.failed.set()  # the others stop after their episode under way; a stop reaches them by check_stop
+            for thread in threads:
+                thread.join()
+            raise
+        if errors:
+            raise errors[0]

@@ -334,7 +334,7 @@ def _sample(stamp, period: float, topic: str) -> int:
         raise BagError(f'{topic}: {error}') from error
 
 
-def _in_order(names, joints: list, topic: str) -> np.ndarray:
+def _in_order(names, joints: list, topic: str) -> np.ndarray | slice:
     try:
         return joint_order(names, joints, topic)
     except MessageError as error:

@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.serialization import serialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -25,7 +25,7 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                  EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                 SAMPLE_QOS, read_joint_state, reference_msg)
+                                 SAMPLE_QOS, read_joint_state, reference_msg, sample_index, serialized_stamp)
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
                                        arm_parameters, node_parameters, same_read_only, service_parameters)
@@ -82,29 +82,37 @@ class GraphEpisodeError(DdarmError, RuntimeError):
 
 @dataclass
 class Recording:
-    """What the driver heard during one episode: states (with applied effort) and commands, by sample."""
+    """What the driver heard during one episode: states and commands by sample, as the CDR that crossed DDS.
+
+    They are read (`result_from_recording`) once the episode has ended; while it runs, only their
+    stamps are (`ddarm.ros.interface.serialized_stamp`).
+    """
 
     k_max: int
     controller: str
     states: dict = field(default_factory=dict)
     commands: dict = field(default_factory=dict)
-    diverged_at: int | None = None
-    last_state_heard: bool = False
+    diverged_at: int | None = None  # the sample of the plant's last state, which has no position, by its report
     plant_report: dict | None = None  # the plant's end-of-episode diagnostics (complete or diverged)
     error: str | None = None
     last_heard: float = field(default_factory=time.monotonic)  # wall time of the last state or command
+
+    @property
+    def last_state(self) -> int:
+        """The sample of the plant's last state: k_max + 1, or the one that says it diverged."""
+        return self.k_max + 1 if self.diverged_at is None else self.diverged_at
 
     @property
     def ended(self) -> bool:
         """An error, or the last state, the plant's report and every scored command all heard.
 
         Topics are not ordered among themselves: the plant's last state can arrive before the
-        command it applied.
+        command it applied, and its report before its last state.
         """
         if self.error is not None:
             return True
-        last = self.k_max if self.diverged_at is None else self.diverged_at - 1
-        return self.last_state_heard and self.plant_report is not None and len(self.commands) >= last + 1
+        return (self.plant_report is not None and self.last_state in self.states
+                and len(self.commands) >= self.last_state)
 
     def fail(self, message: str) -> None:
         """Keep the first problem: it is the cause, later ones its consequences."""
@@ -154,13 +162,16 @@ class GraphDriver(Node):
         self.period = 0.01
         self.reference_publisher = self.create_publisher(JointTrajectory, REFERENCE_TOPIC, REFERENCE_QOS)
         self.subscriptions_by_topic = {
+            # The messages of every sample come serialized: what the bag records, read whole only after the episode.
+            # A listener that deserialises them as they come takes CPU time from the loop it listens to (a third
+            # of the round trips of two processes, measured with one beside them).
             '/' + JOINT_STATES_TOPIC: self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_state,
-                                                               SAMPLE_QOS),
+                                                               SAMPLE_QOS, raw=True),
             '/' + EFFORT_COMMAND_TOPIC: self.create_subscription(JointState, EFFORT_COMMAND_TOPIC,
-                                                                 self._on_command, SAMPLE_QOS),
+                                                                 self._on_command, SAMPLE_QOS, raw=True),
             DIAGNOSTICS_TOPIC: self.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics,
                                                         DIAGNOSTICS_QOS),
-            CLOCK_TOPIC: self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS),
+            CLOCK_TOPIC: self.create_subscription(Clock, CLOCK_TOPIC, self._on_clock, CLOCK_QOS, raw=True),
         }
         self.parameter_clients = {plant_node: AsyncParameterClient(self, plant_node)}
         self.reset_clients = {plant_node: self.create_client(Trigger, f'{plant_node}/reset')}
@@ -282,65 +293,70 @@ class GraphDriver(Node):
 
     # What the graph says --------------------------------------------------------------------
 
-    def _record(self, topic: str, stamp, msg) -> None:
+    def _record(self, topic: str, stamp, data: bytes) -> None:
         if self.bag is not None and self.recording is not None:
-            self.bag.write(topic, _stamp_ns(stamp), serialize_message(msg))
+            self.bag.write(topic, _stamp_ns(stamp), data)
 
-    def _on_clock(self, msg: Clock) -> None:
-        self._record(CLOCK_TOPIC, msg.clock, msg)
-
-    def _on_state(self, msg: JointState) -> None:
-        self.last_traffic = time.monotonic()
+    def _on_clock(self, data: bytes) -> None:
         if self.recording is None:
             return
         try:
-            sample = read_joint_state(msg, self.joints, self.period, need_state=False)
+            self._record(CLOCK_TOPIC, serialized_stamp(data, 'clock'), data)
         except MessageError as error:
-            self.recording.fail(f'unusable joint state on {self.subscriptions_by_topic["/joint_states"].topic_name}'
-                                f': {error}')
+            self.recording.fail(f'unusable clock message on {CLOCK_TOPIC}: {error}')
+
+    def _sample_of(self, data: bytes, what: str) -> tuple[object, int] | None:
+        """(stamp, sample n) of a serialized state or command; None, the episode failed, if it has none."""
+        try:
+            stamp = serialized_stamp(data, what)
+            return stamp, sample_index(stamp, self.period)
+        except MessageError as error:
+            self.recording.fail(f'unusable {what}: {error}')
+            return None
+
+    def _on_state(self, data: bytes) -> None:
+        self.last_traffic = time.monotonic()
+        if self.recording is None:
             return
-        if sample.n > self.recording.k_max + 1:
+        topic = self.subscriptions_by_topic['/' + JOINT_STATES_TOPIC].topic_name
+        heard = self._sample_of(data, f'joint state on {topic}')
+        if heard is None:
+            return
+        stamp, n = heard
+        if n > self.recording.k_max + 1:
             # Not a sample of this episode (the controllers refuse such stamps too): kept out of the bag.
-            self.get_logger().warning(f'ignored a joint state for sample {sample.n}, beyond the episode\'s last '
+            self.get_logger().warning(f'ignored a joint state for sample {n}, beyond the episode\'s last '
                                       f'sample {self.recording.k_max + 1}')
             return
-        self._record('/' + JOINT_STATES_TOPIC, msg.header.stamp, msg)
-        topic = self.subscriptions_by_topic['/' + JOINT_STATES_TOPIC].topic_name
-        if sample.n in self.recording.states:
-            self.recording.fail(f'two joint states for sample {sample.n}: a second publisher on {topic}?')
+        self._record('/' + JOINT_STATES_TOPIC, stamp, data)
+        if n in self.recording.states:
+            self.recording.fail(f'two joint states for sample {n}: a second publisher on {topic}?')
             return
         expected = max(self.recording.states) + 1 if self.recording.states else 0
-        if sample.n != expected:  # one publisher, reliable: the plant's states come in order, one per sample
-            self.recording.fail(f'a joint state for sample {sample.n} where sample {expected} was due: '
+        if n != expected:  # one publisher, reliable: the plant's states come in order, one per sample
+            self.recording.fail(f'a joint state for sample {n} where sample {expected} was due: '
                                 f'a second publisher on {topic}?')
             return
         self.recording.last_heard = time.monotonic()
-        if sample.q is None:  # the plant diverged during the period before this stamp
-            self.recording.diverged_at = sample.n
-            self.recording.last_state_heard = True
-        self.recording.states[sample.n] = sample
-        if sample.n >= self.recording.k_max + 1:
-            self.recording.last_state_heard = True
+        self.recording.states[n] = data
 
-    def _on_command(self, msg: JointState) -> None:
+    def _on_command(self, data: bytes) -> None:
         self.last_traffic = time.monotonic()
         if self.recording is None:
             return
-        try:
-            sample = read_joint_state(msg, self.joints, self.period, 'command', need_state=False,
-                                      need_effort=True)
-        except MessageError as error:
-            self.recording.fail(f'unusable command: {error}')
+        topic = self.subscriptions_by_topic['/' + EFFORT_COMMAND_TOPIC].topic_name
+        heard = self._sample_of(data, f'command on {topic}')
+        if heard is None:
             return
-        if sample.n > self.recording.k_max:
+        stamp, n = heard
+        if n > self.recording.k_max:
             return  # the answer to the final state, or beyond it: never applied, not part of the episode
-        self._record('/' + EFFORT_COMMAND_TOPIC, msg.header.stamp, msg)
-        if sample.n in self.recording.commands:
-            self.recording.fail(f'two commands for sample {sample.n}: a second publisher on '
-                                f'{self.subscriptions_by_topic["/effort_command"].topic_name}?')
+        self._record('/' + EFFORT_COMMAND_TOPIC, stamp, data)
+        if n in self.recording.commands:
+            self.recording.fail(f'two commands for sample {n}: a second publisher on {topic}?')
             return
         self.recording.last_heard = time.monotonic()
-        self.recording.commands[sample.n] = sample.effort
+        self.recording.commands[n] = data
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         if self.recording is None:
@@ -350,7 +366,7 @@ class GraphDriver(Node):
                 and {pair.key: pair.value for pair in status.values}.get('node', plant) == plant]
         if not ours:
             return  # another node's diagnostics: not part of this episode
-        self._record(DIAGNOSTICS_TOPIC, msg.header.stamp, msg)
+        self._record(DIAGNOSTICS_TOPIC, msg.header.stamp, serialize_message(msg))
         for status in ours:
             values = {pair.key: pair.value for pair in status.values}
             if values.get('event') == 'timeout':
@@ -365,8 +381,13 @@ class GraphDriver(Node):
                                         'publisher?')
                 try:
                     plant_counters(values, REPORT_COUNTERS, plant)
+                    if values['event'] == 'diverged':  # its last state is stamped a period after its last sample
+                        self.recording.diverged_at = int(values.get('sample')) + 1
                 except GraphEpisodeError as error:
                     self.recording.fail(str(error))
+                except (TypeError, ValueError) as error:
+                    self.recording.fail(f'the end-of-episode report of {plant} names no sample ({error}): a foreign '
+                                        'publisher on /diagnostics?')
                 self.recording.plant_report = values
 
     def _controller_note(self) -> str:
@@ -492,7 +513,7 @@ class GraphDriver(Node):
             self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
                              'the messages of the last episode to drain', watching)
             self.recording = Recording(plan.k_max, spec.controller)
-            self._record('/' + REFERENCE_TOPIC, reference.header.stamp, reference)
+            self._record('/' + REFERENCE_TOPIC, reference.header.stamp, serialize_message(reference))
             reply = self._trigger(executor, self.reset_clients[self.plant_node], deadline, watching)
             if not reply.success:
                 raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
@@ -515,7 +536,9 @@ class GraphDriver(Node):
                                         "this episode's")
             if bag is not None:
                 bag.set_publishers(self.bag_publishers(spec.controller))
-            return result_from_recording(spec, plan, self.recording)
+            return result_from_recording(spec, plan, self.recording, self.joints, {
+                'states': self.subscriptions_by_topic['/' + JOINT_STATES_TOPIC].topic_name,
+                'commands': self.subscriptions_by_topic['/' + EFFORT_COMMAND_TOPIC].topic_name})
         finally:
             self.recording, self.bag = None, None
 
@@ -548,11 +571,31 @@ def plant_counters(report: dict, names, plant: str) -> dict[str, int]:
                                 'a foreign publisher on /diagnostics?') from error
 
 
-def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording) -> Episodes:
-    """Score the recorded samples by the one rule for recordings (`Episodes.from_recorded`)."""
-    states = {n: (sample.q, sample.v, sample.effort) for n, sample in recording.states.items()}
+def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recording, joints: list[str],
+                          topics: dict[str, str]) -> Episodes:
+    """Read the recorded states and commands (`topics`: their resolved names, for the words) and score them by
+    the one rule for recordings (`Episodes.from_recorded`)."""
+    states, commands = {}, {}
     try:
-        return Episodes.from_recorded(spec, plan, states, recording.commands, plant_report=recording.plant_report)
+        for n, data in recording.states.items():
+            sample = read_joint_state(deserialize_message(data, JointState), joints, spec.period, need_state=False)
+            states[n] = (sample.q, sample.v, sample.effort)
+    except MessageError as error:
+        raise GraphEpisodeError(f'unusable joint state on {topics["states"]}: {error}') from error
+    try:
+        for n, data in recording.commands.items():
+            commands[n] = read_joint_state(deserialize_message(data, JointState), joints, spec.period, 'command',
+                                           need_state=False, need_effort=True).effort
+    except MessageError as error:
+        raise GraphEpisodeError(f'unusable command on {topics["commands"]}: {error}') from error
+    # The episode ended where the plant's report said; its states must say the same.
+    without_position = sorted(n for n, (q, _, _) in states.items() if n > 0 and q is None)
+    if without_position != ([] if recording.diverged_at is None else [recording.diverged_at]):
+        raise GraphEpisodeError(f'the plant reported {recording.plant_report.get("event")!r} at sample '
+                                f'{recording.plant_report.get("sample")}, but its states without a position are '
+                                f'{without_position}: a foreign publisher?')
+    try:
+        return Episodes.from_recorded(spec, plan, states, commands, plant_report=recording.plant_report)
     except RecordingError as error:
         raise GraphEpisodeError(str(error)) from error
 

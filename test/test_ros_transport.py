@@ -1,0 +1,83 @@
+"""What the lockstep path does to be cheap, checked for being right: stamps read from serialized messages, the node
+processes' transport, messages built from arrays, and the bare round trip `ddarm bench --ros` compares against."""
+
+import re
+import subprocess
+
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Time
+from rclpy.serialization import deserialize_message, serialize_message
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+
+from ddarm.ros.interface import joint_state_msg, read_joint_state, serialized_stamp, time_msg
+from ddarm.ros.round_trip import round_trips_in_process
+from ddarm.ros.transport import FAST_DDS_SETTINGS, node_environment
+from ddarm.samples import MessageError
+
+JOINTS = ['joint_1', 'joint_2', 'joint_3']
+
+
+@pytest.mark.parametrize('seconds', [0.0, 0.01, 1.23, 59.99, 3600.5, 2.0 ** 31 - 1.0])
+def test_the_stamp_read_in_place_is_the_deserialized_one(seconds):
+    state = joint_state_msg(JOINTS, seconds, np.ones(3), np.zeros(3), np.full(3, -2.0))
+    clock = Clock(clock=time_msg(seconds))
+    for message in (state, clock):
+        data = serialize_message(message)
+        stamp = serialized_stamp(data, 'a message')
+        expected = deserialize_message(data, type(message))
+        expected = expected.header.stamp if isinstance(message, JointState) else expected.clock
+        assert (stamp.sec, stamp.nanosec) == (expected.sec, expected.nanosec)
+
+
+def test_a_big_endian_stamp_is_read_in_its_byte_order():
+    data = b'\x00\x00\x00\x00' + (7).to_bytes(4, 'big') + (250_000_000).to_bytes(4, 'big') + b'\x00' * 8
+    assert serialized_stamp(data, 'a state') == Time(sec=7, nanosec=250_000_000)
+
+
+@pytest.mark.parametrize('data, problem', [
+    (b'', 'not a CDR-serialized stamped message'),
+    (b'\x00\x01\x00\x00\x01\x00', 'not a CDR-serialized stamped message'),
+    (b'\x00\x07\x00\x00' + b'\x00' * 12, 'not a CDR-serialized stamped message'),
+    (b'\x00\x01\x00\x00' + (1).to_bytes(4, 'little') + (10 ** 9).to_bytes(4, 'little'), 'not below 10^9'),
+])
+def test_what_is_no_stamped_message_is_refused_naming_it(data, problem):
+    with pytest.raises(MessageError, match=re.escape(problem)) as refused:
+        serialized_stamp(data, 'joint state on /joint_states')
+    assert 'joint state on /joint_states' in str(refused.value)
+
+
+def test_arrays_go_into_a_state_and_come_back_exactly():
+    q, v, effort = np.array([0.1, -2.5, 1e-300]), np.array([3.0, 0.0, -0.0]), np.array([1e6, -7.25, 2.0])
+    msg = deserialize_message(serialize_message(joint_state_msg(JOINTS, 0.37, q, v, effort)), JointState)
+    sample = read_joint_state(msg, JOINTS, 0.01, need_effort=True)
+    assert sample.n == 37
+    np.testing.assert_array_equal(sample.q, q)
+    np.testing.assert_array_equal(sample.v, v)
+    np.testing.assert_array_equal(sample.effort, effort)
+    empty = joint_state_msg(JOINTS, 0.0, effort=effort)
+    assert list(empty.position) == list(empty.velocity) == [] and list(empty.effort) == effort.tolist()
+
+
+def test_a_state_in_our_order_and_a_reordered_one_read_the_same():
+    q = np.array([1.0, 2.0, 3.0])
+    ours = read_joint_state(joint_state_msg(JOINTS, 0.0, q, -q), JOINTS, 0.01)
+    theirs = read_joint_state(joint_state_msg(JOINTS[::-1], 0.0, q[::-1], -q[::-1]), JOINTS, 0.01)
+    np.testing.assert_array_equal(ours.q, theirs.q)
+    np.testing.assert_array_equal(ours.v, theirs.v)
+
+
+def test_node_processes_use_shared_memory_unless_fast_dds_is_configured():
+    assert node_environment({'PATH': '/bin'}) == {'PATH': '/bin', 'FASTDDS_BUILTIN_TRANSPORTS': 'SHM'}
+    for setting in FAST_DDS_SETTINGS:
+        given = {setting: 'the user\'s'}
+        assert node_environment(given) == given
+
+
+def test_the_bare_round_trip_makes_every_round_trip_and_leaves_no_process():
+    figures = round_trips_in_process(200)
+    assert figures['round_trips'] == 200
+    assert figures['latency_p50_ms'] <= figures['latency_p99_ms']
+    left = subprocess.run(['pgrep', '-f', 'ddarm.ros.round_trip'], capture_output=True, text=True).stdout.split()
+    assert left == []
