@@ -328,8 +328,9 @@ class PlantNode(Node):
 
     def _publish_state(self, effort: np.ndarray | None) -> None:
         t = self.plant.time
-        self.clock_publisher.publish(ClockMsg(clock=time_msg(t)))
+        # The state first: in lockstep the controller waits for it, and the clock goes out while it computes.
         self.state_publisher.publish(joint_state_msg(self.joints, t, self.plant.q, self.plant.v, effort))
+        self.clock_publisher.publish(ClockMsg(clock=time_msg(t)))
 
     def _on_command(self, msg: JointState) -> None:
         try:
