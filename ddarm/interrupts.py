@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -26,6 +27,7 @@ class Interrupted(BaseException):
 _requested: int | None = None
 _critical = 0
 _deferred: int | None = None  # a stop that came during a critical section
+_critical_lock = threading.Lock()
 
 
 def _raise(signum, frame) -> None:
@@ -51,13 +53,17 @@ def critical_section():
     the signal reached, and DDS has threads of its own.
     """
     global _critical, _deferred
-    _critical += 1
+    with _critical_lock:  # threads of one command (its graph sessions') each write their bags
+        _critical += 1
     try:
         yield
     finally:
-        _critical -= 1
-    if not _critical and _deferred is not None:
-        signum, _deferred = _deferred, None
+        with _critical_lock:
+            _critical -= 1
+            signum = _deferred if not _critical else None
+            if signum is not None:
+                _deferred = None
+    if signum is not None:
         raise Interrupted(signum)
 
 
