@@ -154,8 +154,9 @@ class PlantNode(Node):
     episode with an error. realtime: a thread of its own ticks at t0 + kΔ on the wall clock (waking
     `spin_margin` before each deadline and spinning to it) and integrates under the latest command;
     the executor's callbacks and the ticks share the plant's state under `lock`. `realtime_priority`
-    and `cpu_affinity` schedule the whole process (ddarm.ros.scheduling). The arm is built once, at start: the `urdf` reduced to the joints of the `motion` file (or
-    with every movable joint), and /joint_states names its joints.
+    and `cpu_affinity` schedule the whole process (ddarm.ros.scheduling). The arm is built once, at
+    start: the `urdf` reduced to the joints of the `motion` file (or with every movable joint), and
+    /joint_states names its joints.
     """
 
     def __init__(self, **kwargs) -> None:
@@ -200,6 +201,13 @@ class PlantNode(Node):
         unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
         if unknown:
             raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
+        # Said at start also because rclpy's logger finds its caller through inspect, whose first call in a process
+        # maps every loaded module to its file: 130 ms with numba, NumPy and rclpy loaded, measured. Its first
+        # warning of a stale command, under the lock, missed 7 to 12 real-time deadlines at once.
+        scheduling = self.scheduling.current()
+        self.get_logger().info(f'plant: joints {self.joints}, {self.settings.mode} mode, period '
+                               f'{self.settings.period} s; {scheduling.policy} priority {scheduling.priority} on '
+                               f'cores {list(scheduling.affinity)}')
         if self.get_parameter('autostart').value:
             self.start_episode()
 
@@ -324,8 +332,8 @@ class PlantNode(Node):
         self._report(DiagnosticStatus.OK, 'started', 'episode started')
         if self.settings.mode == 'realtime':
             # A full collection of the ~170,000 objects numba, NumPy and rclpy leave took 110 ms here (eleven
-            # periods missed); frozen, a collection walks only what the episode allocates. mlockall is not used: the
-            # tick touches its pages every period, and nothing was paged out to measure.
+            # periods); frozen, a collection walks only what the episode allocates. No mlockall: the tick touches
+            # its pages every period, and with no swap here there was no paging to measure.
             gc.freeze()
             self.ticks_stop = threading.Event()
             # A thread, not an rclpy timer: the executor's timer wakes its spinning thread through a queue, a
