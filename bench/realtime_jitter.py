@@ -2,7 +2,8 @@
 
 Each case is one real-time episode through plant and controller processes over DDS (60 s by default);
 it prints, per case, the period jitter and deadline misses the plant measured, the scheduling it
-reported running with, and the load average before and after (other users' work shows there).
+reported running with, the load average before and after (other users' work shows there) and the
+CPU time a hypervisor stole meanwhile (a VM's pauses, which no scheduling inside it can prevent).
 "Busy" is a CPU hog (a Python busy loop) pinned to one core for the whole episode: core 0, the other
 core from nodes pinned to core 1, or core 1, the nodes' own. Run from the repository:
     .venv/bin/python bench/realtime_jitter.py [--duration 60] [--cases plain rt-pinned ...]
@@ -48,12 +49,19 @@ def hog(core: int) -> subprocess.Popen:
     return process
 
 
+def steal_ms() -> float:
+    """The time a hypervisor took from this machine's CPUs so far (/proc/stat's steal), in ms: a VM's pauses."""
+    with open('/proc/stat') as stat:
+        fields = stat.readline().split()
+    return int(fields[8]) * 1000 / os.sysconf('SC_CLK_TCK') if len(fields) > 8 else float('nan')
+
+
 def run_case(name: str, duration: float, controller: str) -> dict:
     scheduling, hog_core = CASES[name]
     gains = dict(kp=(225.0,) * 3, kv=(30.0,) * 3) if controller == 'computed_torque' else dict(
         kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0))
     spec = EpisodeSpec(controller=controller, **gains, duration=duration)
-    load_before = os.getloadavg()
+    load_before, stolen = os.getloadavg(), steal_ms()
     busy = hog(hog_core) if hog_core is not None else None
     try:
         result = run_graph_episode(spec, realtime=True, timeout=duration * 2 + 120, scheduling=scheduling)
@@ -66,7 +74,7 @@ def run_case(name: str, duration: float, controller: str) -> dict:
             'sched_policy': report['sched_policy'], 'sched_priority': int(report['sched_priority']),
             'cpu_affinity': json.loads(report['cpu_affinity']), 'spin_margin_s': float(report['spin_margin_s']),
             'hog_core': hog_core, 'load_before': [round(x, 2) for x in load_before],
-            'load_after': [round(x, 2) for x in os.getloadavg()]}
+            'load_after': [round(x, 2) for x in os.getloadavg()], 'steal_ms': steal_ms() - stolen}
 
 
 def main() -> None:
