@@ -44,7 +44,9 @@ from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOP
                                      proposed_values, read_joint_state, read_reference, read_robot_state,
                                      refuse_undeclared_parameters, undeclared_overrides,
                                      unknown_parameters_reason)
+from ddarm.realtime import SchedulingError
 from ddarm.ros.executable import run_node
+from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
 from ddarm.samples import MAX_REFERENCE_POINTS, MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
@@ -112,6 +114,8 @@ class ControllerNode(Node):
                          'missed_ticks': 0, 'clock_faults': 0, 'non_finite_commands': 0}
         self._declare_parameters()
         values = proposed_values(self, ())
+        # Real time against a busy core: the process's priority and cores, refused at start if the OS will not.
+        self.scheduling = NodeScheduling(values)
         self.sampling = checked_choice('sampling', values['sampling'], SAMPLINGS)
         self.command_type = checked_choice('command_type', values['command_type'], COMMAND_TYPES)
         self.motion_file = load_motion(values['motion']) if values['motion'] else None
@@ -212,6 +216,7 @@ class ControllerNode(Node):
                                                        'forward_command_controller takes them', read_only=True)),
             ('command_topic', EFFORT_COMMAND_TOPIC, descriptor('the topic of the effort commands (a robot\'s: '
                                                                '/<controller>/commands)', read_only=True)),
+            *scheduling_declarations(),
         ]
         for name, default, described in declared:
             self.declare_parameter(name, default, described)
@@ -283,7 +288,8 @@ class ControllerNode(Node):
         if self.sampling == 'timer' and values['period'] != self.period:
             return SetParametersResult(successful=False, reason=f'period is the timer\'s in timer mode: fixed at '
                                                                 f'{self.period} s while the node runs')
-        return SetParametersResult(successful=True)
+        refused = self.scheduling.refusal(values)  # last: applied once the rest is valid, nothing changed if refused
+        return SetParametersResult(successful=refused is None, reason=refused or '')
 
     def _apply_parameters(self, changes) -> None:
         values = proposed_values(self, ())
@@ -356,6 +362,7 @@ class ControllerNode(Node):
             'reference_final': None if self.reference is None else self.reference.q[-1].tolist(),
             'sample': self.tick_sample if self.sampling == 'timer' else self.last_sample, 'ticks': self.ticks,
             'refused_messages': self.refused_messages, **self.counters,
+            'scheduling': self.scheduling.current().report(),
             'parameters': plain_parameters(proposed_values(self, ())), 'configuration': self.configuration})
         return response
 
@@ -514,7 +521,8 @@ def main(args=None, law: str | None = None) -> int:
             print(f'usage: controller {{{",".join(CONTROLLERS)}}} [--ros-args ...]', file=sys.stderr)
             return 2
         law = non_ros[0]
-    return run_node(lambda: ControllerNode(law), law, (GainError, ModelError, MotionError, ControllerError), args)
+    return run_node(lambda: ControllerNode(law), law,
+                    (GainError, ModelError, MotionError, ControllerError, SchedulingError), args)
 
 
 def main_pd_gravity(args=None) -> int:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import json
+import threading
 import time
 from dataclasses import dataclass
 
@@ -23,12 +25,14 @@ from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
                                  checked_mass_scale, warm_up)
+from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, period_ns, run_ticks
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, joint_state_msg, plain_parameters, proposed_values,
                                      read_joint_state, refuse_undeclared_parameters, time_msg,
                                      undeclared_overrides)
 from ddarm.ros.executable import run_node
+from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
 from ddarm.samples import MessageError
 from ddarm.arrays import per_joint
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_start
@@ -36,6 +40,9 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_s
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
 IDLE, STARTING, RUNNING, ENDED = 'idle', 'starting', 'running', 'ended'
+# s: a real-time tick wakes this long before its deadline and spins to it. 1 ms took the p99 period jitter from
+# a wake-up's to the spin's (bench/realtime_jitter.py); it costs a tenth of a core at 100 Hz.
+DEFAULT_SPIN_MARGIN = 0.001
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,7 @@ class PlantSettings:
     mass_scale: tuple | None
     q0: np.ndarray
     v0: np.ndarray
+    spin_margin: float = DEFAULT_SPIN_MARGIN
 
 
 def _optional_array(values) -> np.ndarray | None:
@@ -121,6 +129,8 @@ def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) 
     dof = arm.dof
     if values['mode'] not in MODES:
         raise PlantError(f"mode must be one of {MODES}, got {values['mode']!r}")
+    if values['spin_margin'] >= values['period']:
+        raise PlantError(f"spin_margin = {values['spin_margin']} s must be less than the period, {values['period']} s")
     options = PlantOptions(
         period=values['period'], substeps=values['substeps'],
         torque_limit=_optional_array(values['torque_limit']),
@@ -133,7 +143,7 @@ def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) 
     q0, v0 = start_state(values, arm, reduced_by)
     return PlantSettings(values['mode'], values['period'], values['command_timeout'],
                          values['required_subscribers'], values['max_samples'], options,
-                         None if mass_scale is None else tuple(mass_scale), q0, v0)
+                         None if mass_scale is None else tuple(mass_scale), q0, v0, values['spin_margin'])
 
 
 class PlantNode(Node):
@@ -141,15 +151,19 @@ class PlantNode(Node):
 
     lockstep: the state of t_n is published, and [t_n, t_{n+1}) is integrated only once the
     command stamped t_n arrives; a command missing for `command_timeout` wall seconds ends the
-    episode with an error. realtime: a wall timer at 1/Δ integrates under the latest command.
-    The arm is built once, at start: the `urdf` reduced to the joints of the `motion` file (or
-    with every movable joint), and /joint_states names its joints.
+    episode with an error. realtime: a thread of its own ticks at t0 + kΔ on the wall clock (waking
+    `spin_margin` before each deadline and spinning to it) and integrates under the latest command;
+    the executor's callbacks and the ticks share the plant's state under `lock`. `realtime_priority`
+    and `cpu_affinity` schedule the whole process (ddarm.ros.scheduling). The arm is built once, at
+    start: the `urdf` reduced to the joints of the `motion` file (or with every movable joint), and
+    /joint_states names its joints.
     """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('plant', **kwargs)
         self.incompatible_qos_events = 0
         self._declare_parameters()
+        self.scheduling = NodeScheduling(self._parameter_values())
         self.arm, self.reduced_by = plant_arm(self._parameter_values())
         self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
         self.chain = chain_from_model(self.arm.model)
@@ -163,14 +177,17 @@ class PlantNode(Node):
             event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+        # The real-time ticks run on a thread of their own: every callback that touches the episode holds the lock.
+        self.lock = threading.Lock()
         self.command_subscription = self.create_subscription(
-            JointState, EFFORT_COMMAND_TOPIC, self._on_command, SAMPLE_QOS,
+            JointState, EFFORT_COMMAND_TOPIC, self._locked(self._on_command), SAMPLE_QOS,
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         wall = Clock(clock_type=ClockType.STEADY_TIME)
         # Checks start-up and command timeouts; each wake costs a lockstep sample's worth of executor time.
-        self.watchdog = self.create_timer(WATCHDOG_PERIOD, self._watch, clock=wall)
-        self.realtime_timer = None
+        self.watchdog = self.create_timer(WATCHDOG_PERIOD, self._locked(self._watch), clock=wall)
+        self.ticker: threading.Thread | None = None
+        self.ticks_stop = threading.Event()
 
         self.phase = IDLE
         self.plant: Plant | None = None
@@ -179,10 +196,18 @@ class PlantNode(Node):
         self.deadline = 0.0
         self.counters = {'refused_commands': 0, 'stale_commands': 0, 'duplicate_commands': 0, 'deadline_misses': 0}
         self.tick_times: list[float] = []
+        self.lateness: list[int] = []  # ns: how late each real-time tick started after its deadline
         self.began = 0.0
         unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
         if unknown:
             raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
+        # Said at start also because rclpy's logger finds its caller through inspect, whose first call in a process
+        # maps every loaded module to its file: 130 ms with numba, NumPy and rclpy loaded, measured. Its first
+        # warning of a stale command, under the lock, missed 7 to 12 real-time deadlines at once.
+        scheduling = self.scheduling.current()
+        self.get_logger().info(f'plant: joints {self.joints}, {self.settings.mode} mode, period '
+                               f'{self.settings.period} s; {scheduling.policy} priority {scheduling.priority} on '
+                               f'cores {list(scheduling.affinity)}')
         if self.get_parameter('autostart').value:
             self.start_episode()
 
@@ -215,6 +240,10 @@ class PlantNode(Node):
             ('initial_position', double_array, descriptor('start position when trajectory = 0')),
             ('initial_velocity', double_array, descriptor('start velocity when trajectory = 0')),
             ('autostart', True, descriptor('start an episode at launch (else on ~/reset)')),
+            ('spin_margin', DEFAULT_SPIN_MARGIN, descriptor(
+                'realtime: s before each deadline the tick wakes and spins on the clock to it (0: no spin); '
+                'less than the period', floating=SPIN_MARGIN_RANGE)),
+            *scheduling_declarations(),
         ]
         for name, default, described in declared:
             self.declare_parameter(name, default, described)
@@ -223,11 +252,20 @@ class PlantNode(Node):
         return proposed_values(self, changes)
 
     def _check_parameters(self, changes) -> SetParametersResult:
+        values = self._parameter_values(changes)
         try:
-            plant_settings(self._parameter_values(changes), self.arm, self.reduced_by)
+            plant_settings(values, self.arm, self.reduced_by)
         except (PlantError, ModelError, ValueError) as error:
             return SetParametersResult(successful=False, reason=str(error))
-        return SetParametersResult(successful=True)
+        # Last, once the rest is valid: the OS's answer is known only by asking, and a refusal changes nothing.
+        refused = self.scheduling.refusal(values)
+        return SetParametersResult(successful=refused is None, reason=refused or '')
+
+    def _locked(self, callback):
+        def locked(*args):
+            with self.lock:
+                return callback(*args)
+        return locked
 
     def _incompatible_qos(self, event) -> None:
         self.incompatible_qos_events += 1
@@ -242,16 +280,18 @@ class PlantNode(Node):
         Returns JSON: a `message` for people and the `parameters` the episode runs with, so that
         whoever reset the plant can tell whether another node changed them first.
         """
+        self._stop_ticks()
+        with self.lock:
+            return self._start_episode()
+
+    def _start_episode(self) -> str:
         values = self._parameter_values()
         self.settings = plant_settings(values, self.arm, self.reduced_by)
         self.plant = Plant(self.chain, self.settings.options, self.settings.q0, self.settings.v0,
                            self.settings.mass_scale)
         self.latest_command, self.latest_command_sample = None, -1
         self.counters = dict.fromkeys(self.counters, 0)
-        self.tick_times = []
-        if self.realtime_timer is not None:
-            self.destroy_timer(self.realtime_timer)
-            self.realtime_timer = None
+        self.tick_times, self.lateness = [], []
         self.phase = STARTING
         self.deadline = time.monotonic() + self.settings.command_timeout
         message = (f'episode starts in {self.settings.mode} mode once {self.settings.required_subscribers} '
@@ -285,19 +325,45 @@ class PlantNode(Node):
 
     def _begin(self) -> None:
         self.phase = RUNNING
-        self.began = time.monotonic()
+        start = time.monotonic_ns()  # t0: tick k is due at t0 + kΔ, wall clock (CLOCK_MONOTONIC)
+        self.began = start * 1e-9
         self._publish_state(effort=None)
         self.deadline = time.monotonic() + self.settings.command_timeout
         self._report(DiagnosticStatus.OK, 'started', 'episode started')
         if self.settings.mode == 'realtime':
-            self.realtime_timer = self.create_timer(self.settings.period, self._tick,
-                                                    clock=Clock(clock_type=ClockType.STEADY_TIME))
+            # A full collection of the ~170,000 objects numba, NumPy and rclpy leave took 110 ms here (eleven
+            # periods); frozen, a collection walks only what the episode allocates. No mlockall: the tick touches
+            # its pages every period, and with no swap here there was no paging to measure.
+            gc.freeze()
+            self.ticks_stop = threading.Event()
+            # A thread, not an rclpy timer: the executor's timer wakes its spinning thread through a queue, a
+            # second wake-up's latency; this one sleeps to `spin_margin` before the deadline and spins the rest.
+            self.ticker = threading.Thread(
+                target=self._run_ticks, name='plant-ticks', daemon=True,
+                args=(start, period_ns(self.settings.period), period_ns(self.settings.spin_margin)))
+            self.ticker.start()
+
+    def _run_ticks(self, start: int, period: int, margin: int) -> None:
+        try:
+            run_ticks(start, period, margin, self._realtime_tick, self.ticks_stop)
+        except Exception as error:  # no executor reports for this thread: say it, and the driver names the stall
+            if self.context.ok():
+                self.get_logger().error(f'the real-time ticks stopped: {type(error).__name__}: {error}')
+
+    def _stop_ticks(self) -> None:
+        """End the real-time ticks and wait for the thread (at most one tick's work): reset, destroy."""
+        self.ticks_stop.set()
+        if self.ticker is not None and self.ticker is not threading.current_thread():
+            self.ticker.join()
+            self.ticker = None
+
+    def destroy_node(self) -> None:
+        self._stop_ticks()  # no tick may publish on a destroyed publisher
+        super().destroy_node()
 
     def _end(self, level: bytes, event: str, message: str) -> None:
         self.phase = ENDED
-        if self.realtime_timer is not None:
-            self.destroy_timer(self.realtime_timer)
-            self.realtime_timer = None
+        self.ticks_stop.set()  # the tick thread ends after this tick (this may be it): joined at the next reset
         # One call site per severity: rclpy refuses a call site that logs at another severity than before.
         if level == DiagnosticStatus.OK:
             self.get_logger().info(message)
@@ -315,9 +381,15 @@ class PlantNode(Node):
                   'wall_time_s': time.monotonic() - self.began if self.phase != STARTING else 0.0, **self.counters}
         if len(self.tick_times) > 1:
             jitter = np.abs(np.diff(self.tick_times) - self.settings.period) * 1e3
+            late = np.array(self.lateness) * 1e-6
             values.update({'period_jitter_p50_ms': float(np.percentile(jitter, 50)),
                            'period_jitter_p99_ms': float(np.percentile(jitter, 99)),
-                           'period_jitter_max_ms': float(jitter.max())})
+                           'period_jitter_max_ms': float(jitter.max()),
+                           'tick_lateness_p99_ms': float(np.percentile(late, 99)),
+                           'tick_lateness_max_ms': float(late.max())})
+        if self.settings.mode == 'realtime':
+            # A jitter figure means nothing without the conditions it was measured in: the ticking thread's.
+            values.update({**self.scheduling.current().report(), 'spin_margin_s': self.settings.spin_margin})
         status = DiagnosticStatus(level=level, name='ddarm/plant', message=message, hardware_id='ddarm',
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         array = DiagnosticArray(status=[status])
@@ -376,13 +448,23 @@ class PlantNode(Node):
         if self.settings.max_samples and self.plant.sample >= self.settings.max_samples:
             self._end(DiagnosticStatus.OK, 'complete', f'episode complete: {self.plant.sample} periods')
 
-    def _tick(self) -> None:
+    def _realtime_tick(self, index: int, deadline: int) -> bool:
+        """One tick of the real-time thread, due at `deadline` (ns); False once the episode is over."""
+        with self.lock:
+            if self.phase != RUNNING:
+                return False
+            self._tick(deadline)
+            return self.phase == RUNNING
+
+    def _tick(self, deadline: int) -> None:
         """Real time: hold the latest command (zero until the first) and count what came late.
 
         A deadline miss is a tick that starts more than 1.5 periods after the one before; a stale
         command is a tick whose latest command is not for the current sample (held all the same).
         """
-        now = time.monotonic()
+        started = time.monotonic_ns()
+        now = started * 1e-9
+        self.lateness.append(started - deadline)
         if self.tick_times and now - self.tick_times[-1] > 1.5 * self.settings.period:
             self.counters['deadline_misses'] += 1
         self.tick_times.append(now)
@@ -393,7 +475,7 @@ class PlantNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(PlantNode, 'plant', (PlantError, ModelError), args)
+    return run_node(PlantNode, 'plant', (PlantError, ModelError, SchedulingError), args)
 
 
 if __name__ == '__main__':

@@ -140,10 +140,11 @@ def test_a_second_command_for_a_sample_is_counted_and_diagnostics_name_the_plant
     listener = Listener(ros_context, executor, namespace='/arm', command_publisher=True)
     try:
         spin_until(executor, lambda: plant.phase == RUNNING)
-        # Called directly, with the executor still: no real-time tick can fall between the two.
-        n = plant.plant.sample
-        plant._on_command(command(n, [1.0, 2.0, 3.0], period))
-        plant._on_command(command(n, [4.0, 5.0, 6.0], period))
+        # Called directly, under the plant's lock: no real-time tick (a thread of its own) can fall between the two.
+        with plant.lock:
+            n = plant.plant.sample
+            plant._on_command(command(n, [1.0, 2.0, 3.0], period))
+            plant._on_command(command(n, [4.0, 5.0, 6.0], period))
         assert plant.counters['duplicate_commands'] == 1
         np.testing.assert_array_equal(plant.latest_command, [1.0, 2.0, 3.0])
         spin_until(executor, lambda: listener.ends() == ['complete'])

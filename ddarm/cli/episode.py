@@ -13,9 +13,30 @@ from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeError, check_episode, model_arm
 
 
+def episode_scheduling(args: argparse.Namespace):
+    """--realtime-priority, --cpu-affinity and --spin-margin as the nodes' SchedulingOptions (None: none given);
+    refused before any node starts when they cannot apply (no graph; a core this process may not use)."""
+    given = [option for option, value in (('--realtime-priority', args.realtime_priority),
+                                          ('--cpu-affinity', args.cpu_affinity), ('--spin-margin', args.spin_margin))
+             if value is not None]
+    if not given:
+        return None
+    if not (args.ros or args.realtime):
+        raise EpisodeError(f'{given[0]} sets the node processes of an episode through ROS: add --realtime (or --ros)')
+    if args.spin_margin is not None and not 0 <= args.spin_margin < args.period:
+        raise EpisodeError(f'--spin-margin {args.spin_margin}: not in [0, the period {args.period})')
+    from ddarm.realtime import checked_affinity
+    from ddarm.ros.node_parameters import SchedulingOptions
+
+    # The nodes inherit this process's cores: a core it may not use, they may not either.
+    affinity = None if args.cpu_affinity is None else checked_affinity(args.cpu_affinity, parameter='--cpu-affinity')
+    return SchedulingOptions(args.realtime_priority, affinity, args.spin_margin)
+
+
 def command_episode(args: argparse.Namespace) -> int:
     if args.bag and not (args.ros or args.realtime):
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
+    scheduling = episode_scheduling(args)
     spec = episode_spec(args)
     warnings = list(check_episode(spec).warnings)
     started = time.perf_counter()
@@ -24,7 +45,7 @@ def command_episode(args: argparse.Namespace) -> int:
         from ddarm.ros.session import run_graph_episode
 
         result = run_graph_episode(spec, realtime=args.realtime, bag=args.bag, storage=args.storage,
-                                   command=shlex.join(['ddarm', *args.argv]))
+                                   command=shlex.join(['ddarm', *args.argv]), scheduling=scheduling)
         transport = 'ros-realtime' if args.realtime else 'ros-lockstep'
         if args.realtime:
             warnings += realtime_warnings(result.plant_report)

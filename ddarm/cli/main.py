@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite
+from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite, whole_number
 from ddarm.cli.episode import command_episode
 from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
@@ -20,6 +20,7 @@ from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
+from ddarm.realtime import PRIORITY_RANGE, SPIN_MARGIN_RANGE
 from ddarm.cli.bench import add_bench_parser
 from ddarm.cli.pareto import add_pareto_parser
 from ddarm.cli.stability import add_stability_parser
@@ -39,6 +40,14 @@ def build_parser() -> argparse.ArgumentParser:
                          help='run through the ROS 2 graph: plant and controller processes, lockstep over DDS')
     episode.add_argument('--realtime', action='store_true',
                          help='run through the ROS 2 graph on the wall clock (implies --ros)')
+    episode.add_argument('--realtime-priority', type=whole_number(1, PRIORITY_RANGE[1]), metavar='N',
+                         help='run the plant and controller processes at SCHED_FIFO priority N (needs CAP_SYS_NICE '
+                              'or an rtprio limit; refused otherwise)')
+    episode.add_argument('--cpu-affinity', type=whole_number(0, 4095), nargs='+', metavar='C',
+                         help='pin the plant and controller processes to these cores (ones this process may use)')
+    episode.add_argument('--spin-margin', type=finite, metavar='S',
+                         help='the plant wakes S seconds before each real-time deadline and spins to it '
+                              f'(default 0.001; 0: no spin; less than the period, at most {SPIN_MARGIN_RANGE[1]:g})')
     episode.add_argument('--bag', metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
     episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     episode.set_defaults(handler=command_episode)

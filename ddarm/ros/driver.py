@@ -28,7 +28,8 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                  SAMPLE_QOS, read_joint_state, reference_msg, sample_index, serialized_stamp)
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
-                                       arm_parameters, node_parameters, same_read_only, service_parameters)
+                                       SchedulingOptions, arm_parameters, node_parameters, same_read_only,
+                                       service_parameters)
 from ddarm.samples import MessageError
 from ddarm.recording.bags import EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
@@ -468,8 +469,13 @@ class GraphDriver(Node):
 
     def run_episode(self, executor, spec: EpisodeSpec, plan: EpisodePlan | None = None,
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,
-                    alive=lambda: None, peer_timeout: float = PEER_TIMEOUT) -> Episodes:
-        """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died."""
+                    alive=lambda: None, peer_timeout: float = PEER_TIMEOUT,
+                    scheduling: SchedulingOptions | None = None) -> Episodes:
+        """Check the graph, configure, start, record and score one episode; `alive` raises if a node process died.
+
+        `scheduling`: the real-time priority, cores and spin margin the nodes are set to (None: as they are); a
+        node whose OS refuses them refuses the parameter, and the episode does not start.
+        """
         plan = plan if plan is not None else check_episode(spec)
         if not plan.joint_names:
             raise GraphEpisodeError('the episode\'s plan names no joints (a plan read back from a recording?): '
@@ -489,7 +495,7 @@ class GraphDriver(Node):
         arms = arm_parameters(spec)
         self._check_arm(executor, self.plant_node, arms['plant'], deadline, watching)
         self._check_arm(executor, spec.controller, arms[spec.controller], deadline, watching)
-        parameters = node_parameters(spec, plan, mode)
+        parameters = node_parameters(spec, plan, mode, scheduling)
         plant_parameters = service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
         controller_parameters = service_parameters(parameters[spec.controller]['ros__parameters'],
                                                     CONTROLLER_OPTIONAL)
@@ -615,5 +621,15 @@ def realtime_warnings(plant_report: dict | None) -> list[str]:
                         'the sampled loop with a one-period compute delay')
     if misses:
         warnings.append(f"{misses} deadline miss(es) (a tick over 1.5 periods after the one before; period jitter "
-                        f"max {float(plant_report.get('period_jitter_max_ms', 'nan')):.3g} ms)")
+                        f"max {float(plant_report.get('period_jitter_max_ms', 'nan')):.3g} ms; the plant ran "
+                        f"{scheduling_text(plant_report)})")
     return warnings
+
+
+def scheduling_text(plant_report: dict) -> str:
+    """The plant's scheduling as its report gives it: '{policy} priority P on cores [..]'."""
+    policy = plant_report.get('sched_policy', 'an unreported scheduling')
+    priority = plant_report.get('sched_priority')
+    cores = plant_report.get('cpu_affinity')
+    return policy + (f' priority {priority}' if priority not in (None, '0') else '') + (
+        f' on cores {cores}' if cores is not None else '')

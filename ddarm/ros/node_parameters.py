@@ -3,6 +3,7 @@ run an EpisodeSpec, the subset set through their parameter services, and the rec
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.parameter import Parameter
@@ -17,6 +18,24 @@ GRAPH_SUBSCRIBERS = 2
 # What a node is built from when it starts (its arm and the joints it controls): given at start, never set
 # through the parameter services. '' is the default: the paper's arm, and its joints (or every movable joint).
 READ_ONLY = ('urdf', 'motion')
+
+
+@dataclass(frozen=True)
+class SchedulingOptions:
+    """What the node processes are asked for in real time (`ddarm episode --realtime-priority …`); None: not set,
+    each node keeps what it has. Priority and cores go to the plant and the controller, the spin margin to the plant.
+    """
+
+    priority: int | None = None
+    affinity: tuple[int, ...] | None = None
+    spin_margin: float | None = None
+
+    def parameters(self, node: str) -> dict:
+        values = {'realtime_priority': self.priority,
+                  'cpu_affinity': None if self.affinity is None else [int(core) for core in self.affinity]}
+        if node == 'plant':
+            values['spin_margin'] = self.spin_margin
+        return {name: value for name, value in values.items() if value is not None}
 
 
 def arm_parameters(spec: EpisodeSpec) -> dict[str, dict[str, str]]:
@@ -41,11 +60,12 @@ def same_read_only(name: str, given, wanted: str) -> bool:
     return Path(given).resolve() == Path(wanted).resolve()
 
 
-def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep') -> dict:
+def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep',
+                    scheduling: SchedulingOptions | None = None) -> dict:
     """The parameters (as a node: ros__parameters: mapping) that make the plant and controller run `spec`.
 
     Per-joint options left out mean "none"; set through the parameter services, they are empty arrays.
-    Read-only parameters left at their default ('') are left out.
+    Read-only parameters left at their default ('') are left out; so is the scheduling not asked for.
     """
     plant = {
         'mode': mode, 'period': spec.period, 'substeps': spec.substeps, 'command_timeout': COMMAND_TIMEOUT,
@@ -64,6 +84,9 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     arms = arm_parameters(spec)
     plant.update({name: value for name, value in arms['plant'].items() if value})
     controller.update({name: value for name, value in arms[spec.controller].items() if value})
+    if scheduling is not None:
+        plant.update(scheduling.parameters('plant'))
+        controller.update(scheduling.parameters(spec.controller))
     return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
 
 
@@ -78,10 +101,11 @@ PLANT_OPTIONAL = ('torque_limit', 'viscous_friction', 'coulomb_friction', 'exter
 CONTROLLER_OPTIONAL = ('viscous_friction', 'coulomb_friction')
 
 
-def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None) -> dict:
+def episode_record(spec: EpisodeSpec, plan: EpisodePlan, transport: str, command: str | None,
+                   scheduling: SchedulingOptions | None = None) -> dict:
     """The configuration a bag carries, so that the bag alone says what was run."""
     return {'spec': spec.to_dict(), 'joints': list(plan.joint_names), 'prismatic': list(plan.prismatic),
             'k_max': plan.k_max,
             'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
             'transport': transport, 'command': command,
-            'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'))}
+            'node_parameters': node_parameters(spec, plan, transport.removeprefix('ros-'), scheduling)}

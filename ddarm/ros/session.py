@@ -18,8 +18,9 @@ from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.executors import node_executor
 from ddarm.ros.lifetime import child_environment
 from ddarm.ros.names import fully_qualified, namespace_arguments
+from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, SchedulingOptions, arm_parameters,
+                                       episode_record)
 from ddarm.ros.transport import node_environment
-from ddarm.ros.node_parameters import COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, arm_parameters, episode_record
 from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
 from ddarm.episodes.engine import warm_up
 from ddarm.episodes.result import Episodes
@@ -44,14 +45,17 @@ class GraphSession:
     and, should this process be killed, with it (`ddarm.ros.lifetime`). Switching controller
     stops the other law's process, because two laws would answer the same states. A node is
     built from its arm when it starts (the read-only `urdf` and `motion`): an episode of another
-    arm restarts it with that arm's.
+    arm restarts it with that arm's. `scheduling`: the real-time priority, cores and spin margin every episode
+    sets on the nodes (None: whatever they have; they start with SCHED_OTHER on this process's cores).
     """
 
-    def __init__(self, folder: Path | str | None = None, timeout: float = 120.0) -> None:
+    def __init__(self, folder: Path | str | None = None, timeout: float = 120.0,
+                 scheduling: SchedulingOptions | None = None) -> None:
         self._temporary = tempfile.TemporaryDirectory(prefix='ddarm-graph-') if folder is None else None
         self.folder = Path(folder if folder is not None else self._temporary.name)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.timeout = timeout
+        self.scheduling = scheduling
         self.namespace = session_namespace()
         self.processes: dict[str, subprocess.Popen] = {}
         self.arms: dict[str, dict] = {}  # per node process: the read-only parameters it was started with
@@ -118,13 +122,13 @@ class GraphSession:
                  command: str | None) -> EpisodeBagWriter:
         """A bag for the next episode of `spec`, once its nodes are up (the bag records what they offer)."""
         self.ready(spec)
-        return self.driver.open_bag(path, episode_record(spec, plan, transport, command), storage)
+        return self.driver.open_bag(path, episode_record(spec, plan, transport, command, self.scheduling), storage)
 
     def run(self, spec: EpisodeSpec, plan: EpisodePlan | None = None, bag: EpisodeBagWriter | None = None,
             realtime: bool = False) -> Episodes:
         self.use_nodes(spec)
         return self.driver.run_episode(self.executor, spec, plan, bag, 'realtime' if realtime else 'lockstep',
-                                       self.timeout, alive=self.check_alive)
+                                       self.timeout, alive=self.check_alive, scheduling=self.scheduling)
 
     def record_and_score(self, spec: EpisodeSpec, bag: Path, command: str | None = None, storage: str = 'mcap'
                          ) -> tuple[Episodes, dict]:
@@ -182,17 +186,18 @@ def record_and_score(session: GraphSession, spec: EpisodeSpec, bag: Path, storag
 
 def run_graph_episode(spec: EpisodeSpec, realtime: bool = False, timeout: float = 120.0,
                       bag: Path | str | None = None, storage: str = 'mcap', command: str | None = None,
-                      ) -> Episodes:
+                      scheduling: SchedulingOptions | None = None) -> Episodes:
     """Run `spec` through plant and controller processes over DDS and score what the driver recorded.
 
     With `bag`, the episode is also recorded there; the bag is closed (and marked complete or
     incomplete) whatever happens, so a killed or failed run never passes for a good one.
+    `scheduling`: the nodes' real-time priority, cores and spin margin (GraphSession).
     """
     plan = check_episode(spec)
     if bag is not None:
         checked_output_path(bag)  # refused before any node starts
     transport = 'ros-realtime' if realtime else 'ros-lockstep'
-    with GraphSession(timeout=timeout) as session:
+    with GraphSession(timeout=timeout, scheduling=scheduling) as session:
         if bag is None:
             return session.run(spec, plan, realtime=realtime)
         with session.open_bag(bag, spec, plan, transport, storage, command) as writer:
