@@ -370,11 +370,13 @@ class _Schedule:
                 if choices:
                     self.groups.remove(choices[0])
                     return choices[0]
-                if law is not None and law_done:
-                    # This law is done and the other's next episodes wait for a search: switch the nodes now,
-                    # while it runs, not after.
+                switch = law is not None and law_done
+                if switch:
                     law = self.groups[0][0]
-                    self.prepare(recorder, law)
+            if switch:
+                # This law is done and the other's next episodes wait for a search: switch the nodes now, while it
+                # runs, not after (outside the lock: stopping a node waits until the graph has forgotten it).
+                self.prepare(recorder, law)
             self.searches.wait_for_change()
         return None
 

@@ -46,6 +46,9 @@ GRAPH_CHECK_PERIOD = 0.5
 # see the plant and one controller before the second controller on the domain.
 DISCOVERY_SETTLE = 1.0
 PEER_LOSS_GRACE = 1.0
+# A node process that ended is gone from the graph once discovery forgets it: at once when its participant's
+# goodbye is heard, or when its lease (Fast DDS: 20 s) runs out if that was lost or the process was killed.
+DEPARTURE_TIMEOUT = 25.0
 # A plant that owes the next state (its command was heard) and sends nothing for this long has
 # stalled or died; DDS itself notices a killed process only after its 20 s lease.
 PLANT_STALL_TIMEOUT = 5.0
@@ -256,6 +259,24 @@ class GraphDriver(Node):
                 raise ExternalShutdownException('shut down while waiting for the plant and controller')
             alive()
             spin_once(executor, 0.05)
+
+    def wait_until_gone(self, nodes: list[str], timeout: float = DEPARTURE_TIMEOUT) -> None:
+        """Until no node of `nodes` (names in this driver's namespace, their processes ended) is on the graph.
+
+        A participant that leaves says so, and discovery forgets it at once; one whose word was lost (a
+        loaded machine) or that was killed is forgotten when its lease runs out.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            check_stop()
+            present = {fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces()}
+            lingering = [self.node_name(node) for node in nodes if self.node_name(node) in present]
+            if not lingering:
+                return
+            if time.monotonic() > deadline:
+                raise GraphEpisodeError(f'{", ".join(lingering)} still on the graph {timeout:.0f} s after its process '
+                                        'ended: another node of that name on this domain?')
+            time.sleep(0.05)
 
     def _watch_graph(self, law: str) -> None:
         """While an episode runs: a foreign publisher or duplicate node fails it at once, a lost peer after a grace."""

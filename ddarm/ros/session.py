@@ -89,13 +89,13 @@ class GraphSession:
         """The plant and the `spec` law's controller running with the arm of `spec`: started (or restarted,
         for another URDF or motion file) unless they run with it already; the other law's process stopped."""
         law = spec.controller
-        for other in CONTROLLERS:
-            if other != law and other in self.processes:
-                self._stop(other)
+        stopped = [other for other in CONTROLLERS if other != law and other in self.processes]
         arms = arm_parameters(spec)
-        for name in ('plant', law):
-            if name in self.processes and self.arms[name] != arms[name]:
-                self._stop(name)
+        stopped += [name for name in ('plant', law) if name in self.processes and self.arms[name] != arms[name]]
+        for name in stopped:
+            self._stop(name)
+        # Before another starts: a stopped node still on the graph would fail the next episode's check of it.
+        self.driver.wait_until_gone(stopped)
         if 'plant' not in self.processes:
             self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
                                                        'command_timeout': COMMAND_TIMEOUT}, arms['plant'])
