@@ -3,6 +3,7 @@ processes' transport, messages built from arrays, and the bare round trip `ddarm
 
 import re
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -81,3 +82,33 @@ def test_the_bare_round_trip_makes_every_round_trip_and_leaves_no_process():
     assert figures['latency_p50_ms'] <= figures['latency_p99_ms']
     left = subprocess.run(['pgrep', '-f', 'ddarm.ros.round_trip'], capture_output=True, text=True).stdout.split()
     assert left == []
+
+
+def test_a_stopped_node_is_waited_for_until_the_graph_forgets_it_and_named_if_it_never_does():
+    import rclpy
+
+    from ddarm.ros.driver import GraphDriver, GraphEpisodeError
+    from ddarm.ros.session import session_namespace
+
+    namespace = session_namespace()
+    contexts = [rclpy.Context(), rclpy.Context()]
+    for context in contexts:
+        rclpy.init(context=context)
+    driver = GraphDriver(namespace=namespace, context=contexts[0])
+    other = rclpy.create_node('pd_gravity', namespace=namespace, context=contexts[1])
+    try:
+        deadline = time.monotonic() + 20
+        while other.get_fully_qualified_name() not in {f'{ns.rstrip("/")}/{name}' for name, ns in
+                                                       driver.get_node_names_and_namespaces()}:
+            assert time.monotonic() < deadline, 'the driver never saw the node'
+            time.sleep(0.05)
+        with pytest.raises(GraphEpisodeError, match=f'{namespace}/pd_gravity still on the graph'):
+            driver.wait_until_gone(['pd_gravity'], timeout=0.3)
+        other.destroy_node()
+        rclpy.try_shutdown(context=contexts[1])
+        driver.wait_until_gone(['pd_gravity'])
+        driver.wait_until_gone(['computed_torque'])  # never there
+    finally:
+        driver.destroy_node()
+        for context in contexts:
+            rclpy.try_shutdown(context=context)
