@@ -46,10 +46,13 @@ def command_reproduce(args: argparse.Namespace) -> int:
         jobs = args.jobs or default_workers()
         with reproduction.start_searches(jobs) as searches:
             from ddarm.ros.session import GraphSession
+            from ddarm.ros.session_process import SessionProcess
 
             with contextlib.ExitStack() as sessions:
-                # As many graph sessions as searches, each in a namespace of its own with its own nodes.
-                recorders = [sessions.enter_context(GraphSession(out / 'nodes' / f'session-{number}'))
+                # As many graph sessions as searches, each in a namespace of its own with its own nodes; several
+                # each in a process of its own, so that their drivers' work runs on every core.
+                session_kind = GraphSession if jobs == 1 else SessionProcess
+                recorders = [sessions.enter_context(session_kind(out / 'nodes' / f'session-{number}'))
                              for number in range(jobs)]
                 for session in recorders:
                     session.prepare(reproduction.first_episode())
