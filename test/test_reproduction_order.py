@@ -130,14 +130,28 @@ def test_several_recorders_run_every_episode_once_and_give_the_same_rows(tmp_pat
     assert rows[1] == rows[3]
 
 
-class FailingRecorder(Recorder):
+class StartingTogether(Recorder):
+    """A recorder whose first episode waits for the other recorders' first: every one of them takes a group."""
+
+    def __init__(self, together: threading.Barrier, fails: bool) -> None:
+        super().__init__()
+        self.together, self.fails, self.started = together, fails, False
+
     def record_and_score(self, spec, bag, command=None):
-        raise RuntimeError(f'no graph for {bag.name}')
+        if not self.started:
+            self.started = True
+            self.together.wait(timeout=30)
+        if self.fails:
+            raise RuntimeError(f'no graph for {bag.name}')
+        return super().record_and_score(spec, bag, command)
 
 
 def test_a_failing_recorder_stops_the_run_with_its_error(tmp_path, found):
     budget, results = found
     (tmp_path / 'bags').mkdir()
+    together = threading.Barrier(2)
+    recorders = [StartingTogether(together, fails=False), StartingTogether(together, fails=True)]
     with pytest.raises(RuntimeError, match='no graph for'):
-        Reproduction(tmp_path, budget, 'ddarm reproduce').run_episodes([Recorder(), FailingRecorder()],
-                                                                      Searches(results, list(results)))
+        Reproduction(tmp_path, budget, 'ddarm reproduce').run_episodes(recorders, Searches(results, list(results)))
+    ran = [bag for kind, _, bag in recorders[0].events if kind == 'run']
+    assert 0 < len(ran) < 2 * (2 * len(budget.taus) + len(budget.taus) + 4 + 2) + 8 + 6  # it stopped after its group

@@ -51,13 +51,14 @@ def command_reproduce(args: argparse.Namespace) -> int:
             with contextlib.ExitStack() as sessions:
                 # As many graph sessions as searches, each in a namespace of its own with its own nodes; several
                 # each in a process of its own, so that their drivers' work runs on every core.
-                session_kind = GraphSession if jobs == 1 else SessionProcess
+                count = min(jobs, reproduction.episode_groups)
+                session_kind = GraphSession if count == 1 else SessionProcess
                 recorders = [sessions.enter_context(session_kind(out / 'nodes' / f'session-{number}'))
-                             for number in range(jobs)]
+                             for number in range(count)]
                 for session in recorders:
                     session.prepare(reproduction.first_episode())
-                progress(f'every reported episode runs through the ROS graph (lockstep, {jobs} session'
-                         f"{'s' if jobs > 1 else ''}), recorded, as its gains are found")
+                progress(f'every reported episode runs through the ROS graph (lockstep, {count} session'
+                         f"{'s' if count > 1 else ''}), recorded, as its gains are found")
                 reproduction.run_episodes(recorders, searches)
         reproduction.judge_claims()
         results = reproduction.results

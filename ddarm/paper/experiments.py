@@ -29,7 +29,7 @@ from ddarm.paper.settings import Budget, Case, paper_settings
 from ddarm.recording.bags import checked_output_path
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.pareto import pareto_front
-from ddarm.interrupts import check_stop
+from ddarm.interrupts import Interrupted, check_stop
 from ddarm.tuning.jobs import POLL_S, BackgroundJobs, Job, JobError
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
@@ -230,21 +230,11 @@ class Reproduction:
         the tables, whatever order they ran in.
         """
         recorders = list(recorders) if isinstance(recorders, (list, tuple)) else [recorders]
-        case, beyond = self.settings.case, self.settings.beyond
-        groups = []  # (law, the searches it needs, what runs it on a recorder)
-        for controller in self._laws():
-            groups += [
-                (controller, ((controller, 'I1', case), (controller, 'I', case)),
-                 lambda recorder, found, law=controller: self._tables_2_and_3(recorder, found, law)),
-                (controller, tuple((controller, 'I', table4) for table4 in self.settings.table4_cases),
-                 lambda recorder, found, law=controller: self._table4(recorder, found, law)),
-                (controller, (), lambda recorder, found, law=controller: self._section2(recorder, law))]
-        groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)),
-                    lambda recorder, found: self._robust(recorder, found)),
-                   ('computed_torque', (), lambda recorder, found: self._stability(recorder))]
+        groups = self._episode_groups()
         unknown = sorted({str(key) for group in groups for key in group[1] if key not in searches.labels})
         if unknown:
             raise JobError(f'the reported episodes need searches that are not run: {unknown}')
+        case = self.settings.case
         schedule = _Schedule(groups, searches, lambda recorder, law: recorder.prepare(_template(law, case)))
         if len(recorders) == 1:
             schedule.work(recorders[0])
@@ -255,6 +245,27 @@ class Reproduction:
                      self.results.section2.omega_rules, self.results.section2.omega_procedure):
             rows.sort(key=lambda row: order[row.controller])  # stable: each law's rows ran in the tables' order
         self.take_searches(searches.wait())
+
+    @property
+    def episode_groups(self) -> int:
+        """How many groups of reported episodes there are: more graph sessions than this would idle."""
+        return len(self._episode_groups())
+
+    def _episode_groups(self) -> list[tuple]:
+        """(law, the searches it needs, what runs it on a recorder) for each group of reported episodes."""
+        case, beyond = self.settings.case, self.settings.beyond
+        groups = []
+        for controller in self._laws():
+            groups += [
+                (controller, ((controller, 'I1', case), (controller, 'I', case)),
+                 lambda recorder, found, law=controller: self._tables_2_and_3(recorder, found, law)),
+                (controller, tuple((controller, 'I', table4) for table4 in self.settings.table4_cases),
+                 lambda recorder, found, law=controller: self._table4(recorder, found, law)),
+                (controller, (), lambda recorder, found, law=controller: self._section2(recorder, law))]
+        groups += [(beyond.law, ('robust', (beyond.law, 'I', beyond.case)),
+                    lambda recorder, found: self._robust(recorder, found)),
+                   ('computed_torque', (), lambda recorder, found: self._stability(recorder))]
+        return groups
 
     def _robust(self, recorder: EpisodeRecorder, found: dict) -> None:
         """The robust gains and the nominal optimum on every scenario, each through the ROS graph."""
@@ -349,7 +360,8 @@ class _Schedule:
     A recorder keeps to its law while that law has groups ready; it switches when another law's
     group waited for a search, or when its law has none left (the episodes that need no search
     wait for their law's turn). One thread per recorder (`work_on`): the groups are taken under a
-    lock, and a failure in one thread stops the others after their episode under way.
+    lock, and a failure in one thread stops the others after their group under way (a stop by
+    signal, at their next check).
     """
 
     def __init__(self, groups: list, searches, prepare) -> None:
@@ -388,10 +400,12 @@ class _Schedule:
             group[2](recorder, self.searches.wait(group[1]))
 
     def work_on(self, recorders: list) -> None:
-        """`work` on every recorder at once, one thread each; the first failure (or a stop) is raised here.
+        """`work` on every recorder at once, one thread each; the first failure (or a stop) is raised here, the
+        others noted on it.
 
-        A session's node processes end with the thread that started them (`ddarm.ros.lifetime`): each
-        recorder is used by one thread only, which lives until its last episode is done.
+        A node process ends with the thread that started it (`ddarm.ros.lifetime`): recorders that start
+        processes of their own should be `SessionProcess`es started from the main thread, which the
+        threads here only talk to.
         """
         errors = []
 
@@ -412,9 +426,23 @@ class _Schedule:
                     thread.join(POLL_S)
                     check_stop()
         except BaseException:
-            self.failed.set()  # the others stop after their episode under way; a stop reaches them by check_stop
-            for thread in threads:
-                thread.join()
+            self.failed.set()  # the others stop after their group under way; a stop reaches them by check_stop
+            _join_despite_stops(threads)  # never leave a thread using a recorder the caller is about to close
             raise
         if errors:
+            for later in errors[1:]:
+                errors[0].add_note(f'another graph session failed too: {type(later).__name__}: {later}')
             raise errors[0]
+
+
+def _join_despite_stops(threads: list[threading.Thread]) -> None:
+    """Wait for every thread, whatever stops come meanwhile (a second Ctrl-C), then raise the last of them."""
+    stop = None
+    for thread in threads:
+        while thread.is_alive():
+            try:
+                thread.join(POLL_S)
+            except Interrupted as again:
+                stop = again
+    if stop is not None:
+        raise stop

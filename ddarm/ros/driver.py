@@ -404,12 +404,9 @@ class GraphDriver(Node):
                 try:
                     plant_counters(values, REPORT_COUNTERS, plant)
                     if values['event'] == 'diverged':  # its last state is stamped a period after its last sample
-                        self.recording.diverged_at = int(values.get('sample')) + 1
+                        self.recording.diverged_at = _reported_sample(values, self.recording.k_max, plant) + 1
                 except GraphEpisodeError as error:
                     self.recording.fail(str(error))
-                except (TypeError, ValueError) as error:
-                    self.recording.fail(f'the end-of-episode report of {plant} names no sample ({error}): a foreign '
-                                        'publisher on /diagnostics?')
                 self.recording.plant_report = values
 
     def _controller_note(self) -> str:
@@ -589,6 +586,15 @@ def _same_value(reported, sent) -> bool:
     return reported == sent
 
 
+def _reported_sample(report: dict, k_max: int, plant: str) -> int:
+    """The sample a plant's divergence report names: a whole number in [0, k_max]."""
+    text = str(report.get('sample', ''))
+    if not (text.isascii() and text.isdigit()) or int(text) > k_max:
+        raise GraphEpisodeError(f'the divergence report of {plant} names sample {text!r}, not one of the episode\'s '
+                                f'samples 0 … {k_max}: a foreign publisher on /diagnostics?')
+    return int(text)
+
+
 def plant_counters(report: dict, names, plant: str) -> dict[str, int]:
     """The plant's counters from its report; a report that does not parse is not the plant's word."""
     try:
@@ -602,19 +608,23 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
                           topics: dict[str, str]) -> Episodes:
     """Read the recorded states and commands (`topics`: their resolved names, for the words) and score them by
     the one rule for recordings (`Episodes.from_recorded`)."""
-    states, commands = {}, {}
-    try:
-        for n, data in recording.states.items():
-            sample = read_joint_state(deserialize_message(data, JointState), joints, spec.period, need_state=False)
-            states[n] = (sample.q, sample.v, sample.effort)
-    except MessageError as error:
-        raise GraphEpisodeError(f'unusable joint state on {topics["states"]}: {error}') from error
-    try:
-        for n, data in recording.commands.items():
-            commands[n] = read_joint_state(deserialize_message(data, JointState), joints, spec.period, 'command',
-                                           need_state=False, need_effort=True).effort
-    except MessageError as error:
-        raise GraphEpisodeError(f'unusable command on {topics["commands"]}: {error}') from error
+    def read(n: int, data: bytes, what: str, topic: str, **needs):
+        try:
+            msg = deserialize_message(data, JointState)
+        except Exception as error:  # rclpy's RMWError: bytes that are no JointState
+            raise GraphEpisodeError(f'unusable {what} on {topic}: sample {n} ({len(data)} bytes) is no JointState '
+                                    f'({type(error).__name__}: {str(error).splitlines()[0]})') from error
+        try:
+            return read_joint_state(msg, joints, spec.period, what, need_state=False, **needs)
+        except MessageError as error:
+            raise GraphEpisodeError(f'unusable {what} on {topic}: {error}') from error
+
+    states = {}
+    for n, data in recording.states.items():
+        sample = read(n, data, 'joint state', topics['states'])
+        states[n] = (sample.q, sample.v, sample.effort)
+    commands = {n: read(n, data, 'command', topics['commands'], need_effort=True).effort
+                for n, data in recording.commands.items()}
     # The episode ended where the plant's report said; its states must say the same.
     without_position = sorted(n for n, (q, _, _) in states.items() if n > 0 and q is None)
     if without_position != ([] if recording.diverged_at is None else [recording.diverged_at]):

@@ -82,8 +82,9 @@ def sample_index(stamp: Time, period: float) -> int:
     return sample_at(seconds(stamp), period)
 
 
-# The first two bytes of a serialized message: its CDR encapsulation, big- or little-endian.
-_CDR_BYTE_ORDER = {b'\x00\x00': '>', b'\x00\x01': '<'}
+# The first two bytes of a serialized message: little-endian CDR, as rmw_fastrtps writes it on this
+# machine and as the bag reader (ddarm.recording.bags.deserialize) takes it.
+CDR_LITTLE_ENDIAN = b'\x00\x01'
 
 
 def serialized_stamp(data: bytes, what: str) -> Time:
@@ -92,9 +93,10 @@ def serialized_stamp(data: bytes, what: str) -> Time:
     Read in place because it is the message's first field, right after the encapsulation: one
     microsecond where deserialising the message costs thirty, at every sample of a recorder.
     """
-    if len(data) < 12 or data[:2] not in _CDR_BYTE_ORDER:
-        raise MessageError(f'{what}: not a CDR-serialized stamped message ({len(data)} bytes)')
-    sec, nanosec = struct.unpack_from(_CDR_BYTE_ORDER[data[:2]] + 'iI', data, 4)
+    if len(data) < 12 or data[:2] != CDR_LITTLE_ENDIAN:
+        raise MessageError(f'{what}: not a stamped message in little-endian CDR ({len(data)} bytes, '
+                           f'encapsulation {bytes(data[:2]).hex() or "none"})')
+    sec, nanosec = struct.unpack_from('<iI', data, 4)
     if nanosec >= 1_000_000_000:
         raise MessageError(f'{what}: stamp nanosec = {nanosec} is not below 10^9')
     return Time(sec=sec, nanosec=nanosec)

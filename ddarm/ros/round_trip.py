@@ -20,7 +20,6 @@ import numpy as np
 
 from ddarm.errors import DdarmError
 from ddarm.ros.lifetime import child_environment, follow_parent
-from ddarm.ros.transport import node_environment
 
 PING_TOPIC = 'ping'
 PONG_TOPIC = 'pong'
@@ -75,7 +74,7 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
     # Its output only if it fails: a SIGTERM that lands in a callback is logged as a fatal exception.
     log = tempfile.TemporaryFile()
     process = subprocess.Popen([sys.executable, '-m', 'ddarm.ros.round_trip', 'echo', namespace],
-                               env=node_environment(child_environment()), start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
+                               env=child_environment(), start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('round_trip_ping', namespace=namespace, context=context)
@@ -145,7 +144,7 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
 def round_trips_in_process(count: int, timeout: float = 120.0) -> dict:
     """`measure_round_trips` in a process of its own: a driver's process keeps its DDS participant to itself."""
     done = subprocess.run([sys.executable, '-m', 'ddarm.ros.round_trip', 'ping', str(count), str(timeout)],
-                          env=node_environment(child_environment()), capture_output=True, text=True, timeout=timeout + 2 * START_TIMEOUT_S)
+                          env=child_environment(), capture_output=True, text=True, timeout=timeout + 2 * START_TIMEOUT_S)
     if done.returncode != 0:
         raise RoundTripError(f'the round-trip measurement exited with code {done.returncode}: {done.stderr[-2000:]}')
     return json.loads(done.stdout)

@@ -20,7 +20,6 @@ from ddarm.ros.lifetime import child_environment
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, SchedulingOptions, arm_parameters,
                                        episode_record)
-from ddarm.ros.transport import node_environment
 from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
 from ddarm.episodes.engine import warm_up
 from ddarm.episodes.result import Episodes
@@ -81,8 +80,7 @@ class GraphSession:
             self.processes[name] = subprocess.Popen(
                 [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
                  '--params-file', str(path)],
-                stdout=log, stderr=subprocess.STDOUT, env=node_environment(child_environment()),
-                start_new_session=True)
+                stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
         self.arms[name] = dict(arm)
 
     def use_nodes(self, spec: EpisodeSpec) -> None:
