@@ -47,7 +47,9 @@ setup(
         'Markdown==3.11.3',
     ],
     extras_require={
-        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0', 'selenium==4.31.0'],
+        # `ddarm campaign --ray ADDRESS`: the searches as tasks on a Ray cluster (a cp311 wheel on the mirror).
+        'ray': ['ray==2.60.0'],
+        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0', 'selenium==4.31.0', 'ray==2.60.0'],
     },
     zip_safe=True,
     entry_points={

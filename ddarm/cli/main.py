@@ -22,6 +22,7 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.realtime import PRIORITY_RANGE, SPIN_MARGIN_RANGE
 from ddarm.cli.bench import add_bench_parser
+from ddarm.cli.campaign import add_campaign_parser
 from ddarm.cli.pareto import add_pareto_parser
 from ddarm.cli.stability import add_stability_parser
 from ddarm.cli.motion import add_motion_parser
@@ -111,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_pareto_parser(commands)
     add_stability_parser(commands)
     add_motion_parser(commands)
+    add_campaign_parser(commands)
     return parser
 
 

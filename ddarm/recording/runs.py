@@ -106,6 +106,11 @@ class RunFolder:
             {key: record.get(key) for key in (*INDICES, 'diverged', 'bag')}))
         self._write_summary()
 
+    def record(self, key: str, value) -> None:
+        """`value` in the summary as `key`, written at once (a part of the run that is not one episode's record)."""
+        self.summary[key] = value
+        self._write_summary()
+
     def write_text(self, name: str, text: str) -> Path:
         path = checked_output_path(self.path / name)
         path.write_text(text)

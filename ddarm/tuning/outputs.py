@@ -39,12 +39,14 @@ def run_folder(kind: str, controller: str, runs: str, run: str | None, command: 
     return RunFolder(name, runs, command=command)
 
 
-def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out: str | None = None) -> list[str]:
-    """The controller YAML in the run folder, and at `out` if given (never overwriting)."""
+def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out: str | None = None,
+                name: str | None = None) -> list[str]:
+    """The controller YAML in the run folder (as `name`, default <controller>.yaml), and at `out` if given (never
+    overwriting)."""
     text = controller_yaml(spec.controller, kp, kv, spec.delay, spec.period, provenance,
                            joint_names=arm_joints(spec)[0], urdf=spec.model_urdf or spec.urdf, motion=spec.motion,
                            duration=spec.duration)
-    written = [str(run.write_text(f'{spec.controller}.yaml', text))]
+    written = [str(run.write_text(name or f'{spec.controller}.yaml', text))]
     if out:
         checked_output_path(out).write_text(text)
         written.append(out)
