@@ -400,9 +400,10 @@ class PlantNode(Node):
 
     def _publish_state(self, effort: np.ndarray | None) -> None:
         t = self.plant.time
-        # The state first: in lockstep the controller waits for it, and the clock goes out while it computes.
-        self.state_publisher.publish(joint_state_msg(self.joints, t, self.plant.q, self.plant.v, effort))
+        # The clock first: a recorder that has heard a sample's state has heard its clock tick too (the bag's
+        # /clock is complete when the last state arrives).
         self.clock_publisher.publish(ClockMsg(clock=time_msg(t)))
+        self.state_publisher.publish(joint_state_msg(self.joints, t, self.plant.q, self.plant.v, effort))
 
     def _on_command(self, msg: JointState) -> None:
         try:
