@@ -100,6 +100,7 @@ class Recording:
     plant_report: dict | None = None  # the plant's end-of-episode diagnostics (complete or diverged)
     error: str | None = None
     last_heard: float = field(default_factory=time.monotonic)  # wall time of the last state or command
+    clock_ticks: set = field(default_factory=set)  # the samples whose /clock tick was heard
 
     @property
     def last_state(self) -> int:
@@ -115,8 +116,10 @@ class Recording:
         """
         if self.error is not None:
             return True
+        # The plant ticks /clock with every state it integrated to (not with a diverged one): all in the bag.
+        ticked = self.last_state if self.diverged_at is None else self.last_state - 1
         return (self.plant_report is not None and self.last_state in self.states
-                and len(self.commands) >= self.last_state)
+                and len(self.commands) >= self.last_state and ticked in self.clock_ticks)
 
     def fail(self, message: str) -> None:
         """Keep the first problem: it is the cause, later ones its consequences."""
@@ -131,7 +134,7 @@ class Recording:
         """What came, for a message that says why an episode did not end."""
         last = max(self.states) if self.states else None
         return (f'heard states up to sample {last}, {len(self.commands)} of {self.k_max + 1} commands, '
-                f"{'a' if self.plant_report else 'no'} plant report")
+                f"{len(self.clock_ticks)} clock ticks, {'a' if self.plant_report else 'no'} plant report")
 
 
 def _stamp_ns(stamp) -> int:
@@ -322,10 +325,10 @@ class GraphDriver(Node):
     def _on_clock(self, data: bytes) -> None:
         if self.recording is None:
             return
-        try:
-            self._record(CLOCK_TOPIC, serialized_stamp(data, 'clock'), data)
-        except MessageError as error:
-            self.recording.fail(f'unusable clock message on {CLOCK_TOPIC}: {error}')
+        heard = self._sample_of(data, f'clock message on {CLOCK_TOPIC}')
+        if heard is not None and heard[1] <= self.recording.k_max + 1:
+            self._record(CLOCK_TOPIC, heard[0], data)
+            self.recording.clock_ticks.add(heard[1])
 
     def _sample_of(self, data: bytes, what: str) -> tuple[object, int] | None:
         """(stamp, sample n) of a serialized state or command; None, the episode failed, if it has none."""
