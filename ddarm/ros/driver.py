@@ -213,9 +213,13 @@ class GraphDriver(Node):
                         for info in self.get_publishers_info_by_topic(resolved)]
                 for topic, (resolved, _) in self.topic_owners(law).items()}
 
+    def graph_nodes(self) -> Counter:
+        """The fully qualified name of every node on the graph, with how many nodes bear it."""
+        return Counter(fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces())
+
     def graph_problems(self, law: str) -> tuple[list[str], list[str]]:
         """(foreign, missing): what is on the graph that must not be, and who is not there yet."""
-        names = Counter(fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces())
+        names = self.graph_nodes()
         foreign, missing = [], []
         for node, role in ((self.node_name(self.plant_node), 'plant'), (self.node_name(law), 'controller')):
             if names[node] == 0:
@@ -272,7 +276,7 @@ class GraphDriver(Node):
         deadline = time.monotonic() + timeout
         while True:
             check_stop()
-            present = {fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces()}
+            present = self.graph_nodes()
             lingering = [self.node_name(node) for node in nodes if self.node_name(node) in present]
             if not lingering:
                 return
@@ -416,8 +420,7 @@ class GraphDriver(Node):
         """Who kept the plant waiting: the controller, and whether it is still on the graph."""
         controller = self.node_name(self.recording.controller)
         last = max(self.recording.commands) if self.recording.commands else None
-        present = controller in {fully_qualified(name, namespace)
-                                 for name, namespace in self.get_node_names_and_namespaces()}
+        present = controller in self.graph_nodes()
         return (f"the controller {controller} sent {'no command' if last is None else f'nothing after sample {last}'}"
                 f" ({'still on the graph: stuck or refusing states?' if present else 'gone from the graph'})")
 
