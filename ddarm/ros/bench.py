@@ -6,7 +6,10 @@ moves both; each round's ratio compares runs made seconds apart.
 
 from __future__ import annotations
 
+import dataclasses
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -27,10 +30,6 @@ def lockstep_and_round_trips(rounds: int = 3, duration: float = LOCKSTEP_DURATIO
     (what DDS carries); `episode_samples_per_s` divides by the whole episode as the driver ran it
     (configuration, reset and the last messages included).
     """
-    import dataclasses
-    import tempfile
-    from pathlib import Path
-
     from ddarm.ros.round_trip import round_trips_in_process
     from ddarm.ros.session import GraphSession, record_and_score
 
