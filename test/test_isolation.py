@@ -166,8 +166,17 @@ def test_a_missing_peer_is_named_before_any_episode(ros_context):
 
 
 def intruder_at_sample(context, sample, act):
-    """A node that does `act(node)` once, when it hears the state of `sample`."""
+    """A node that does `act(node)` once, when it hears the state of `sample`.
+
+    Its service clients are made with it, before the episode: one made in the act would still be discovering
+    the controller's services when a fast episode has ended, and its call would come after the episode.
+    """
+    from rclpy.parameter_client import AsyncParameterClient
+    from std_srvs.srv import Trigger
+
     intruder = rclpy.create_node('visitor', context=context)
+    intruder.parameter_client = AsyncParameterClient(intruder, 'computed_torque')
+    intruder.reset_client = intruder.create_client(Trigger, 'computed_torque/reset')
     done = []
 
     def on_state(msg):
@@ -180,15 +189,13 @@ def intruder_at_sample(context, sample, act):
 
 
 def change_gains(node, msg):
-    from rclpy.parameter_client import AsyncParameterClient
-
-    return AsyncParameterClient(node, 'computed_torque').set_parameters([Parameter('kp', value=[400.0] * 3)])
+    return node.parameter_client.set_parameters([Parameter('kp', value=[400.0] * 3)])
 
 
 def reset_controller(node, msg):
     from std_srvs.srv import Trigger
 
-    return node.create_client(Trigger, 'computed_torque/reset').call_async(Trigger.Request())
+    return node.reset_client.call_async(Trigger.Request())
 
 
 def replace_reference(node, msg):
