@@ -8,7 +8,6 @@ number reaches the core.
 from __future__ import annotations
 
 import array
-import math
 import struct
 from dataclasses import dataclass
 
@@ -21,6 +20,7 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ddarm.control.laws import GainError
+from ddarm.ros.cdr import stamp_of
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
@@ -61,11 +61,8 @@ COMMAND_TYPES = ('joint_state', 'float64_multi_array')
 
 
 def time_msg(seconds: float) -> Time:
-    whole = math.floor(seconds)
-    nanoseconds = int(round((seconds - whole) * 1e9))
-    if nanoseconds == 1_000_000_000:
-        whole, nanoseconds = whole + 1, 0
-    return Time(sec=int(whole), nanosec=nanoseconds)
+    stamp = stamp_of(seconds)
+    return Time(sec=stamp.sec, nanosec=stamp.nanosec)
 
 
 def duration_msg(seconds: float) -> Duration:
