@@ -16,7 +16,7 @@ import numpy as np
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics
+from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics, typed_entry
 
 PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each law
 MAX_DELAY = 100
@@ -158,8 +158,16 @@ class DelayBuffer:
         return len(self._history)
 
 
-def _column(values) -> np.ndarray:
-    return np.ascontiguousarray(np.asarray(values, dtype=float)[:, None])
+def _vector(values, dof: int | None = None) -> np.ndarray:
+    """`values` as the compiled law reads them: float64, C-contiguous, `dof` of them when given."""
+    vector = np.ascontiguousarray(values, dtype=float)
+    if dof is not None and vector.shape != (dof,):
+        raise GainError(f'the law needs {dof} values per joint quantity, got shape {vector.shape}')
+    return vector
+
+
+def _column(values, dof: int | None = None) -> np.ndarray:
+    return _vector(values, dof)[:, None]
 
 
 class _Law:
@@ -181,8 +189,11 @@ class _Law:
         zero = np.zeros(chain.dof)
         self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
         self.coulomb_friction = checked_friction('coulomb_friction', coulomb_friction, chain.dof)
-        self._friction = (zero if self.viscous_friction is None else self.viscous_friction,
-                          zero if self.coulomb_friction is None else self.coulomb_friction)
+        self._friction = (zero if self.viscous_friction is None else _vector(self.viscous_friction),
+                          zero if self.coulomb_friction is None else _vector(self.coulomb_friction))
+        column = np.zeros((chain.dof, 1))
+        self._command_one = typed_entry(_command_one, self.code, self._inverse_dynamics, column, column, zero, zero,
+                                        zero, zero, column, column, *self._friction)
 
     def set_gains(self, kp, kv) -> None:
         self.kp, self.kv = checked_gains(kp, kv, self.chain.dof)
@@ -196,11 +207,11 @@ class _Law:
         """
         if self.gravity_feedforward and gravity_ref is None:
             raise GainError('PD + gravity needs the gravity feedforward Ĝ(q^d(t_n)) (gravity_feedforward)')
-        return _command_one(self.code, self._inverse_dynamics, *self._gain_columns,
-                            np.asarray(measured.q_ref, dtype=float), np.asarray(measured.v_ref, dtype=float),
-                            np.asarray(reference.a, dtype=float),
-                            np.zeros(self.chain.dof) if gravity_ref is None else np.asarray(gravity_ref, dtype=float),
-                            _column(measured.q), _column(measured.v), *self._friction)
+        dof = self.chain.dof
+        return self._command_one(self.code, self._inverse_dynamics, *self._gain_columns,
+                                 _vector(measured.q_ref, dof), _vector(measured.v_ref, dof), _vector(reference.a, dof),
+                                 np.zeros(dof) if gravity_ref is None else _vector(gravity_ref, dof),
+                                 _column(measured.q, dof), _column(measured.v, dof), *self._friction)
 
 
 class PDGravityLaw(_Law):

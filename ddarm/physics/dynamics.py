@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
+import numba
 import numpy as np
 import pinocchio as pin
 from numba import types
@@ -122,6 +123,17 @@ LANE_ARRAY = types.float64[:, ::1]
 # Both generated functions: (mass scale, q, q̇, torque or q̈, out, lanes), arrays of shape (n, lanes).
 KERNEL_SIGNATURE = types.void(LANE_ARRAY, LANE_ARRAY, LANE_ARRAY, LANE_ARRAY, LANE_ARRAY, types.int64)
 CACHE_ENVIRONMENT = 'DDARM_CACHE_DIR'
+
+
+def typed_entry(dispatcher, *arguments):
+    """`dispatcher`'s compiled code for the types of `arguments` (compiled, or loaded from numba's cache, now).
+
+    Call it only with arguments of exactly those types, arrays C-contiguous: it converts them without
+    checking their layout. numba's dispatcher types every argument at every call, and a first-class
+    function (the generated dynamics) costs it about 15 µs, more than a plant step or a law's command
+    takes; a node makes one such call per sample, with arrays it makes itself, so it types them once.
+    """
+    return dispatcher.compile(tuple(numba.typeof(argument) for argument in arguments))
 
 
 @dataclass(frozen=True)
