@@ -28,9 +28,10 @@ from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RAN
 from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, period_ns, run_ticks
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
-                                     descriptor, joint_state_msg, plain_parameters, proposed_values,
+                                     descriptor, plain_parameters, proposed_values,
                                      read_joint_state, refuse_undeclared_parameters, time_msg,
                                      undeclared_overrides)
+from ddarm.ros.cdr import JointStateEncoder, decode_joint_state, encode_clock
 from ddarm.ros.executable import run_node
 from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
 from ddarm.samples import MessageError
@@ -53,6 +54,7 @@ class PlantSettings:
     period: float
     command_timeout: float
     required_subscribers: int
+    required_clock_subscribers: int
     max_samples: int
     options: PlantOptions
     mass_scale: tuple | None
@@ -142,7 +144,8 @@ def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) 
         checked_mass_scale(mass_scale, dof)
     q0, v0 = start_state(values, arm, reduced_by)
     return PlantSettings(values['mode'], values['period'], values['command_timeout'],
-                         values['required_subscribers'], values['max_samples'], options,
+                         values['required_subscribers'], values['required_clock_subscribers'],
+                         values['max_samples'], options,
                          None if mass_scale is None else tuple(mass_scale), q0, v0, values['spin_margin'])
 
 
@@ -166,6 +169,7 @@ class PlantNode(Node):
         self.scheduling = NodeScheduling(self._parameter_values())
         self.arm, self.reduced_by = plant_arm(self._parameter_values())
         self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
+        self.state_encoder = JointStateEncoder(self.joints)
         self.chain = chain_from_model(self.arm.model)
         self.settings = plant_settings(self._parameter_values(), self.arm, self.reduced_by)
         warm_up(self.chain)
@@ -179,8 +183,9 @@ class PlantNode(Node):
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         # The real-time ticks run on a thread of their own: every callback that touches the episode holds the lock.
         self.lock = threading.Lock()
+        # States and commands cross as CDR, read and written by ddarm.ros.cdr: rclpy's conversion is slower.
         self.command_subscription = self.create_subscription(
-            JointState, EFFORT_COMMAND_TOPIC, self._locked(self._on_command), SAMPLE_QOS,
+            JointState, EFFORT_COMMAND_TOPIC, self._locked(self._on_command), SAMPLE_QOS, raw=True,
             event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         wall = Clock(clock_type=ClockType.STEADY_TIME)
@@ -223,6 +228,8 @@ class PlantNode(Node):
             ('command_timeout', 5.0, descriptor('lockstep: wall seconds to wait for a command', floating=(1e-3, 3600.0))),
             ('required_subscribers', 1, descriptor('joint_states subscribers to wait for before sample 0',
                                                    integer=(1, 100))),
+            ('required_clock_subscribers', 0, descriptor('/clock subscribers to wait for before sample 0 (a recorder '
+                                                         'of every tick)', integer=(0, 100))),
             ('max_samples', 0, descriptor('periods integrated per episode (0: until reset)', integer=(0, 10**6))),
             ('torque_limit', double_array, descriptor('actuator limit |P_i| in N m per joint (unset: none)')),
             ('viscous_friction', double_array, descriptor('viscous friction N m s/rad per joint (unset: none)')),
@@ -295,7 +302,8 @@ class PlantNode(Node):
         self.phase = STARTING
         self.deadline = time.monotonic() + self.settings.command_timeout
         message = (f'episode starts in {self.settings.mode} mode once {self.settings.required_subscribers} '
-                   f'subscriber(s) listen on {self.state_publisher.topic_name}')
+                   f'subscriber(s) listen on {self.state_publisher.topic_name} and '
+                   f'{self.settings.required_clock_subscribers} on {self.clock_publisher.topic_name}')
         return json.dumps({'message': message, 'parameters': plain_parameters(values)})
 
     def _on_reset(self, request, response):
@@ -311,13 +319,17 @@ class PlantNode(Node):
         now = time.monotonic()
         if self.phase == STARTING:
             listeners = self.state_publisher.get_subscription_count()
-            # Matching runs both ways on its own: a command publisher not matched yet would lose sample 0's command.
+            # Each topic matches on its own: a recorder whose /clock reader the plant has not matched yet would miss
+            # the first ticks (volatile: never sent again), and a command publisher not matched yet sample 0's command.
+            clock_listeners = self.clock_publisher.get_subscription_count()
             commanders = self.command_subscription.get_publisher_count()
-            if listeners >= self.settings.required_subscribers and commanders >= 1:
+            if (listeners >= self.settings.required_subscribers and commanders >= 1
+                    and clock_listeners >= self.settings.required_clock_subscribers):
                 self._begin()
             elif now > self.deadline:
                 self._end(DiagnosticStatus.ERROR, 'no_start',
-                          f'no start: {listeners} of {self.settings.required_subscribers} joint_states subscribers '
+                          f'no start: {listeners} of {self.settings.required_subscribers} joint_states subscribers, '
+                          f'{clock_listeners} of {self.settings.required_clock_subscribers} /clock subscribers '
                           f'and {commanders} effort_command publishers within {self.settings.command_timeout} s')
         elif self.phase == RUNNING and self.settings.mode == 'lockstep' and now > self.deadline:
             self._end(DiagnosticStatus.ERROR, 'timeout', f'no command for sample {self.plant.sample} '
@@ -400,15 +412,15 @@ class PlantNode(Node):
 
     def _publish_state(self, effort: np.ndarray | None) -> None:
         t = self.plant.time
-        # The clock first: a recorder that has heard a sample's state has heard its clock tick too (the bag's
-        # /clock is complete when the last state arrives).
-        self.clock_publisher.publish(ClockMsg(clock=time_msg(t)))
-        self.state_publisher.publish(joint_state_msg(self.joints, t, self.plant.q, self.plant.v, effort))
+        # The state first: in lockstep the controller waits for it, and the clock goes out while it computes (the
+        # driver ends an episode only once it has every clock tick too, whatever order they arrive in).
+        self.state_publisher.publish(self.state_encoder.encode(t, self.plant.q, self.plant.v, effort))
+        self.clock_publisher.publish(encode_clock(t))
 
-    def _on_command(self, msg: JointState) -> None:
+    def _on_command(self, data: bytes) -> None:
         try:
-            command = read_joint_state(msg, self.joints, self.settings.period, 'effort command',
-                                       need_state=False, need_effort=True)
+            command = read_joint_state(decode_joint_state(data, 'effort command'), self.joints,
+                                       self.settings.period, 'effort command', need_state=False, need_effort=True)
         except MessageError as error:
             self.counters['refused_commands'] += 1
             self.get_logger().error(f'refused: {error}')
@@ -439,8 +451,7 @@ class PlantNode(Node):
         applied = self.plant.saturate(command)
         if not self.plant.advance(applied):
             n = self.plant.sample
-            self.state_publisher.publish(joint_state_msg(self.joints, (n + 1) * self.settings.period,
-                                                         effort=applied))
+            self.state_publisher.publish(self.state_encoder.encode((n + 1) * self.settings.period, effort=applied))
             self._end(DiagnosticStatus.ERROR, 'diverged', f'diverged: the state left its bounds during sample {n}; '
                       'the plant is frozen')
             return

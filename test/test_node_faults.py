@@ -12,6 +12,7 @@ from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -143,8 +144,8 @@ def test_a_second_command_for_a_sample_is_counted_and_diagnostics_name_the_plant
         # Called directly, under the plant's lock: no real-time tick (a thread of its own) can fall between the two.
         with plant.lock:
             n = plant.plant.sample
-            plant._on_command(command(n, [1.0, 2.0, 3.0], period))
-            plant._on_command(command(n, [4.0, 5.0, 6.0], period))
+            plant._on_command(serialize_message(command(n, [1.0, 2.0, 3.0], period)))
+            plant._on_command(serialize_message(command(n, [4.0, 5.0, 6.0], period)))
         assert plant.counters['duplicate_commands'] == 1
         np.testing.assert_array_equal(plant.latest_command, [1.0, 2.0, 3.0])
         spin_until(executor, lambda: listener.ends() == ['complete'])
