@@ -15,7 +15,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -26,12 +26,13 @@ from ddarm.errors import DdarmError
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                  EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
                                  SAMPLE_QOS, read_joint_state, reference_msg, sample_index, serialized_stamp)
+from ddarm.ros.cdr import decode_joint_state
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
                                        SchedulingOptions, arm_parameters, node_parameters, same_read_only,
                                        service_parameters)
 from ddarm.samples import MessageError
-from ddarm.recording.bags import EpisodeBagWriter
+from ddarm.recording.bags import BagError, EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
 from ddarm.interrupts import check_stop
@@ -58,8 +59,16 @@ STALL_TIMEOUT = COMMAND_TIMEOUT + 5.0
 # Before the plant starts an episode, the states and commands still in flight from the one before
 # (a controller that was slow or stopped answers late) must have arrived: this long without any.
 QUIET_PERIOD = 0.05
+# While the driver waits, it checks the node processes and the graph at most this often (wall s), not at every
+# message: the checks cost tens of µs, a lockstep sample a few hundred.
+WATCH_PERIOD = 0.01
+# Messages recorded before the driver writes them to the bag: a write of this many takes a few ms, far less than the
+# samples that the topics' QoS depth keeps while the driver is busy with it.
+UNWRITTEN_LIMIT = 256
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+# The topics of every sample, heard from sample 0 on.
+RECORDED_SAMPLE_TOPICS = ('/' + JOINT_STATES_TOPIC, '/' + EFFORT_COMMAND_TOPIC, CLOCK_TOPIC)
 # The profile each recorded topic's publisher declares (ddarm.ros.interface).
 TOPIC_QOS = {'/' + JOINT_STATES_TOPIC: SAMPLE_QOS, '/' + EFFORT_COMMAND_TOPIC: SAMPLE_QOS,
              '/' + REFERENCE_TOPIC: REFERENCE_QOS, CLOCK_TOPIC: CLOCK_QOS, DIAGNOSTICS_TOPIC: DIAGNOSTICS_QOS}
@@ -101,6 +110,7 @@ class Recording:
     error: str | None = None
     last_heard: float = field(default_factory=time.monotonic)  # wall time of the last state or command
     clock_ticks: set = field(default_factory=set)  # the samples whose /clock tick was heard
+    latest_state: int | None = None  # the sample of the latest state heard (they come in order)
 
     @property
     def last_state(self) -> int:
@@ -116,10 +126,11 @@ class Recording:
         """
         if self.error is not None:
             return True
-        # The plant ticks /clock with every state it integrated to (not with a diverged one): all in the bag.
+        # The plant ticks /clock with every state it integrated to (not with a diverged one): all in the bag. Ticks
+        # are those of samples 0..k_max + 1, and none comes after a diverged state: all of them are there.
         ticked = self.last_state if self.diverged_at is None else self.last_state - 1
         return (self.plant_report is not None and self.last_state in self.states
-                and len(self.commands) >= self.last_state and ticked in self.clock_ticks)
+                and len(self.commands) >= self.last_state and len(self.clock_ticks) > ticked)
 
     def fail(self, message: str) -> None:
         """Keep the first problem: it is the cause, later ones its consequences."""
@@ -128,12 +139,11 @@ class Recording:
 
     def owed_by_plant(self) -> bool:
         """The command for the latest state has come: the next message must be the plant's."""
-        return bool(self.states) and max(self.states) in self.commands
+        return self.latest_state is not None and self.latest_state in self.commands
 
     def heard(self) -> str:
         """What came, for a message that says why an episode did not end."""
-        last = max(self.states) if self.states else None
-        return (f'heard states up to sample {last}, {len(self.commands)} of {self.k_max + 1} commands, '
+        return (f'heard states up to sample {self.latest_state}, {len(self.commands)} of {self.k_max + 1} commands, '
                 f"{len(self.clock_ticks)} clock ticks, {'a' if self.plant_report else 'no'} plant report")
 
 
@@ -191,6 +201,7 @@ class GraphDriver(Node):
         self._graph_settled = False  # DISCOVERY_SETTLE waited once
         self._peer_missing_since: float | None = None
         self.last_traffic = 0.0  # wall time of the last state or command heard, in an episode or not
+        self._unwritten: list[tuple[str, int, bytes]] = []  # (topic, stamp ns, CDR) recorded, not yet in the bag
 
     def node_name(self, name: str) -> str:
         """The fully qualified name of a node `name` in this driver's namespace."""
@@ -323,8 +334,19 @@ class GraphDriver(Node):
     # What the graph says --------------------------------------------------------------------
 
     def _record(self, topic: str, stamp, data: bytes) -> None:
+        # Kept, and written to the bag in batches (`_write_bag`): a bag write costs as much as the rest of a
+        # message's handling, and batched it stays off the path of most samples.
         if self.bag is not None and self.recording is not None:
-            self.bag.write(topic, _stamp_ns(stamp), data)
+            self._unwritten.append((topic, _stamp_ns(stamp), data))
+            if len(self._unwritten) >= UNWRITTEN_LIMIT:
+                self._write_bag()
+
+    def _write_bag(self) -> None:
+        """Write the messages recorded and not yet written, in the order heard."""
+        unwritten, self._unwritten = self._unwritten, []
+        if self.bag is not None:
+            for topic, stamp_ns, data in unwritten:
+                self.bag.write(topic, stamp_ns, data)
 
     def _on_clock(self, data: bytes) -> None:
         if self.recording is None:
@@ -361,13 +383,14 @@ class GraphDriver(Node):
         if n in self.recording.states:
             self.recording.fail(f'two joint states for sample {n}: a second publisher on {topic}?')
             return
-        expected = max(self.recording.states) + 1 if self.recording.states else 0
+        expected = 0 if self.recording.latest_state is None else self.recording.latest_state + 1
         if n != expected:  # one publisher, reliable: the plant's states come in order, one per sample
             self.recording.fail(f'a joint state for sample {n} where sample {expected} was due: '
                                 f'a second publisher on {topic}?')
             return
         self.recording.last_heard = time.monotonic()
         self.recording.states[n] = data
+        self.recording.latest_state = n
 
     def _on_command(self, data: bytes) -> None:
         self.last_traffic = time.monotonic()
@@ -439,16 +462,20 @@ class GraphDriver(Node):
     # Driving --------------------------------------------------------------------------------
 
     def _spin_until(self, executor, done, deadline: float, what: str, alive) -> None:
+        next_watch = 0.0
         while True:
             check_stop()
             if not self.context.ok():  # rclpy's signal handler shut the context down
                 raise ExternalShutdownException(f'shut down while waiting for {what}')
             if done():
                 return
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 heard = f' ({self.recording.heard()})' if self.recording is not None else ''
                 raise GraphEpisodeError(f'timed out waiting for {what}{heard}')
-            alive()
+            if now >= next_watch:
+                alive()
+                next_watch = now + WATCH_PERIOD
             spin_once(executor, 0.05)
 
     def _trigger(self, executor, client, deadline: float, alive):
@@ -542,6 +569,12 @@ class GraphDriver(Node):
             self._check_started_with(spec.controller, controller_parameters, state['parameters'])
             self._spin_until(executor, lambda: time.monotonic() - self.last_traffic >= QUIET_PERIOD, deadline,
                              'the messages of the last episode to drain', watching)
+            # Each side of a topic matches the other on its own, and a volatile reader drops what a writer sent
+            # before the reader knew it: the plant waits for its side (required_subscribers and
+            # required_clock_subscribers), the driver for its own before sample 0 can go out.
+            recorded = [self.subscriptions_by_topic[topic] for topic in RECORDED_SAMPLE_TOPICS]
+            self._spin_until(executor, lambda: all(reader.get_publisher_count() >= 1 for reader in recorded), deadline,
+                             'the recorder to match the publishers of ' + ', '.join(RECORDED_SAMPLE_TOPICS), watching)
             self.recording = Recording(plan.k_max, spec.controller)
             self._record('/' + REFERENCE_TOPIC, reference.header.stamp, serialize_message(reference))
             reply = self._trigger(executor, self.reset_clients[self.plant_node], deadline, watching)
@@ -564,13 +597,21 @@ class GraphDriver(Node):
                 raise GraphEpisodeError(f'{self.node_name(spec.controller)} was reconfigured, reset or sent another '
                                         'reference during the episode (by another node?): its commands may not be '
                                         "this episode's")
+            self._write_bag()
             if bag is not None:
                 bag.set_publishers(self.bag_publishers(spec.controller))
             return result_from_recording(spec, plan, self.recording, self.joints, {
                 'states': self.subscriptions_by_topic['/' + JOINT_STATES_TOPIC].topic_name,
                 'commands': self.subscriptions_by_topic['/' + EFFORT_COMMAND_TOPIC].topic_name})
+        except BaseException as error:
+            # A failed episode's bag (closed incomplete by its owner) still holds all that was heard.
+            try:
+                self._write_bag()
+            except BagError as failure:
+                error.add_note(str(failure))
+            raise
         finally:
-            self.recording, self.bag = None, None
+            self.recording, self.bag, self._unwritten = None, None, []
 
     def _check_started_with(self, node: str, sent: list[Parameter], reported: dict) -> None:
         """The node runs the episode with the parameters this driver set, not ones another node set in between."""
@@ -616,12 +657,8 @@ def result_from_recording(spec: EpisodeSpec, plan: EpisodePlan, recording: Recor
     the one rule for recordings (`Episodes.from_recorded`)."""
     def read(n: int, data: bytes, what: str, topic: str, **needs):
         try:
-            msg = deserialize_message(data, JointState)
-        except Exception as error:  # rclpy's RMWError: bytes that are no JointState
-            raise GraphEpisodeError(f'unusable {what} on {topic}: sample {n} ({len(data)} bytes) is no JointState '
-                                    f'({type(error).__name__}: {str(error).splitlines()[0]})') from error
-        try:
-            return read_joint_state(msg, joints, spec.period, what, need_state=False, **needs)
+            return read_joint_state(decode_joint_state(data, f'sample {n}'), joints, spec.period, what,
+                                    need_state=False, **needs)
         except MessageError as error:
             raise GraphEpisodeError(f'unusable {what} on {topic}: {error}') from error
 
