@@ -63,8 +63,9 @@ def test_a_state_in_our_order_and_a_reordered_one_read_the_same():
     np.testing.assert_array_equal(ours.v, theirs.v)
 
 
-def test_the_bare_round_trip_makes_every_round_trip():
-    figures = round_trips_in_process(200)
+@pytest.mark.parametrize('serialized', [False, True], ids=['messages', 'serialized'])
+def test_the_bare_round_trip_makes_every_round_trip(serialized):
+    figures = round_trips_in_process(200, serialized=serialized)
     assert figures['round_trips'] == 200
     assert figures['latency_p50_ms'] <= figures['latency_p99_ms']
 

@@ -66,8 +66,10 @@ def command_bench(args: argparse.Namespace) -> int:
             print(f"    round {number}: {round_figures['lockstep_samples_per_s']:7.0f} samples/s "
                   f"({round_figures['episode_samples_per_s']:.0f} over the whole episode) against "
                   f"{round_figures['round_trips_per_s']:7.0f} round trips/s (p50 {round_figures['round_trip_p50_ms']:.3f}"
-                  f" ms): ratio {round_figures['ratio']:.2f}")
-        print(f"    median ratio {ros['median_ratio']:.2f}")
+                  f" ms): ratio {round_figures['ratio']:.2f}; against "
+                  f"{round_figures['serialized_round_trips_per_s']:7.0f} round trips/s of its CDR bytes: ratio "
+                  f"{round_figures['serialized_ratio']:.2f}")
+        print(f"    median ratio {ros['median_ratio']:.2f} (messages), {ros['median_serialized_ratio']:.2f} (bytes)")
     return 0
 
 

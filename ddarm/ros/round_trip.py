@@ -6,6 +6,10 @@ profile of the episode's states and commands (`SAMPLE_QOS`). One lockstep sample
 trip (a state out, a command back) plus the plant's and the controller's work, so the ratio of a
 lockstep episode's samples per second to these round trips per second says how much of the DDS
 ceiling ddarm's loop reaches.
+
+`serialized`: both sides hand rclpy the CDR bytes (subscriptions with raw=True, bytes published), as the
+plant and the controller do (ddarm.ros.cdr), so that the round trip is DDS's alone; otherwise rclpy's
+JointState messages, converted at each take and publish.
 """
 
 from __future__ import annotations
@@ -33,14 +37,17 @@ class RoundTripError(DdarmError, RuntimeError):
     """The echo process did not answer, or died."""
 
 
-def _state(n: int):
+def _state(n: int, serialized: bool):
+    from ddarm.ros.cdr import JointStateEncoder
     from ddarm.ros.interface import joint_state_msg
 
     values = np.full(len(JOINTS), 0.1 * n)
+    if serialized:
+        return JointStateEncoder(JOINTS).encode(n * 1e-3, values, values, values)
     return joint_state_msg(list(JOINTS), n * 1e-3, values, values, values)
 
 
-def echo(namespace: str) -> int:
+def echo(namespace: str, serialized: bool) -> int:
     """The echo process: every JointState heard on `ping` goes back unchanged on `pong`, until SIGTERM or SIGINT."""
     import rclpy
     from sensor_msgs.msg import JointState
@@ -51,13 +58,13 @@ def echo(namespace: str) -> int:
     def make_node():
         node = rclpy.create_node('round_trip_echo', namespace=namespace)
         publisher = node.create_publisher(JointState, PONG_TOPIC, SAMPLE_QOS)
-        node.create_subscription(JointState, PING_TOPIC, publisher.publish, SAMPLE_QOS)
+        node.create_subscription(JointState, PING_TOPIC, publisher.publish, SAMPLE_QOS, raw=serialized)
         return node
 
     return run_node(make_node, 'round_trip_echo', ())
 
 
-def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
+def measure_round_trips(count: int, timeout: float = 120.0, serialized: bool = False) -> dict:
     """`count` round trips to an echo process of its own, one at a time: their rate and their latency quantiles.
 
     Its participant is this process's only one (`round_trips_in_process` keeps it so beside a graph session).
@@ -67,13 +74,13 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
     from sensor_msgs.msg import JointState
 
     from ddarm.ros.executors import node_executor
-    from ddarm.ros.interface import SAMPLE_QOS
+    from ddarm.ros.interface import SAMPLE_QOS, serialized_stamp
     from ddarm.ros.session import session_namespace
 
     namespace = session_namespace()
     # Its output only if it fails: a SIGTERM that lands in a callback is logged as a fatal exception.
     log = tempfile.TemporaryFile()
-    process = subprocess.Popen([sys.executable, '-m', 'ddarm.ros.round_trip', 'echo', namespace],
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm.ros.round_trip', 'echo', namespace, str(serialized)],
                                env=child_environment(), start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -85,14 +92,15 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
     returned = np.zeros(count + 1, dtype=np.int64)
     started, finished = Future(), Future()
     next_sample = [0]
-    messages = [_state(n) for n in range(count + 1)]  # built beforehand: the measurement is DDS's, not ours
+    messages = [_state(n, serialized) for n in range(count + 1)]  # built beforehand: the measurement is DDS's
 
     def send(n: int) -> None:
         sent[n] = time.perf_counter_ns()
         publisher.publish(messages[n])
 
     def on_pong(msg) -> None:
-        n = round(msg.header.stamp.nanosec * 1e-6) + 1000 * msg.header.stamp.sec
+        stamp = serialized_stamp(msg, 'pong') if serialized else msg.header.stamp
+        n = round(stamp.nanosec * 1e-6) + 1000 * stamp.sec
         if not started.done():
             started.set_result(True)  # the hello came back: both directions are matched; sample 0 was the hello
         elif n != next_sample[0]:
@@ -104,7 +112,7 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
         next_sample[0] = n + 1
         send(n + 1)
 
-    node.create_subscription(JointState, PONG_TOPIC, on_pong, SAMPLE_QOS)
+    node.create_subscription(JointState, PONG_TOPIC, on_pong, SAMPLE_QOS, raw=serialized)
     try:
         deadline = time.monotonic() + START_TIMEOUT_S
         while not started.done():
@@ -141,9 +149,10 @@ def measure_round_trips(count: int, timeout: float = 120.0) -> dict:
             'latency_p99_ms': float(np.percentile(latencies, 99))}
 
 
-def round_trips_in_process(count: int, timeout: float = 120.0) -> dict:
+def round_trips_in_process(count: int, timeout: float = 120.0, serialized: bool = False) -> dict:
     """`measure_round_trips` in a process of its own: a driver's process keeps its DDS participant to itself."""
-    done = subprocess.run([sys.executable, '-m', 'ddarm.ros.round_trip', 'ping', str(count), str(timeout)],
+    done = subprocess.run([sys.executable, '-m', 'ddarm.ros.round_trip', 'ping', str(count), str(timeout),
+                           str(serialized)],
                           env=child_environment(), capture_output=True, text=True, timeout=timeout + 2 * START_TIMEOUT_S)
     if done.returncode != 0:
         raise RoundTripError(f'the round-trip measurement exited with code {done.returncode}: {done.stderr[-2000:]}')
@@ -152,6 +161,6 @@ def round_trips_in_process(count: int, timeout: float = 120.0) -> dict:
 
 if __name__ == '__main__':
     if sys.argv[1] == 'echo':
-        raise SystemExit(echo(sys.argv[2]))
+        raise SystemExit(echo(sys.argv[2], sys.argv[3] == 'True'))
     follow_parent()
-    print(json.dumps(measure_round_trips(int(sys.argv[2]), float(sys.argv[3]))))
+    print(json.dumps(measure_round_trips(int(sys.argv[2]), float(sys.argv[3]), sys.argv[4] == 'True')))
