@@ -78,7 +78,7 @@ DEFAULT_QOS: dict[str, TopicQos] = {
     '/joint_states': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
     '/effort_command': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
     '/reference': {'reliability': 'reliable', 'durability': 'transient_local', 'history': 'keep_last', 'depth': 1},
-    '/clock': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 100},
+    '/clock': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
     '/diagnostics': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 10},
     EPISODE_TOPIC: {'reliability': 'reliable', 'durability': 'transient_local', 'history': 'keep_last', 'depth': 1},
 }
