@@ -133,7 +133,7 @@ def test_a_bag_records_the_offered_qos_as_rosbag2_jazzy_reads_it(ros_context, tm
     with pytest.raises(AssertionError):  # the check can fail: a volatile recording misses the latched reference
         assert_matches(recorded_profile(recorded['/joint_states'][0]), REFERENCE_QOS)
     if source == 'defaults':
-        assert recorded['/joint_states'][0]['depth'] == 1000 and recorded['/clock'][0]['depth'] == 100
+        assert recorded['/joint_states'][0]['depth'] == 1000 and recorded['/clock'][0]['depth'] == 1000
     else:
         assert recorded['/reference'][0]['history'] == 'unknown' and recorded['/reference'][0]['depth'] == 0
 
