@@ -27,7 +27,8 @@ def _cases(count: int, seed: int = 7):
     rng = random.Random(seed)
     special = [0.0, -0.0, 5e-324, 1e308, -np.inf, np.nan, 1 / 3]
     for _ in range(count):
-        joints = [''.join(rng.choice('ab_7é漢') for _ in range(rng.randrange(0, 13))) for _ in range(rng.randrange(10))]
+        joints = [''.join(rng.choice('ab_7é漢') for _ in range(rng.randrange(0, 13)))
+                  for _ in range(rng.randrange(10))]
         arrays = [None if rng.random() < 0.35 else
                   np.array([rng.choice(special) if rng.random() < 0.2 else rng.gauss(0, 100) for _ in joints])
                   for _ in FIELDS]
@@ -42,7 +43,8 @@ def _rosbags_bytes(joints, t, arrays) -> bytes:
         header=types['std_msgs/msg/Header'](stamp=types['builtin_interfaces/msg/Time'](sec=stamp.sec,
                                                                                       nanosec=stamp.nanosec),
                                             frame_id=''),
-        name=list(joints), **{field: np.empty(0) if values is None else values for field, values in zip(FIELDS, arrays)})
+        name=list(joints),
+        **{field: np.empty(0) if values is None else values for field, values in zip(FIELDS, arrays)})
     return bytes(TYPESTORE.serialize_cdr(message, MSGTYPE))
 
 
@@ -120,7 +122,8 @@ def _patched(offset: int, value: bytes) -> bytes:
 
 
 @pytest.mark.parametrize('data, problem', [
-    (b'\x00\x00\x00\x00' + _valid()[4:], 'encapsulation 0000, 0001 expected'),  # big-endian
+    (b'\x00\x00\x00\x00' + _valid()[4:],  # big-endian
+     'not a stamped message in little-endian CDR (96 bytes, encapsulation 0000)'),
     (b'\x00\x07\x00\x00' + _valid()[4:], 'encapsulation 0007'),  # XCDR2
     (_patched(8, struct.pack('<I', 10 ** 9)), 'stamp nanosec = 1000000000 is not below 10^9'),
     (_patched(12, struct.pack('<I', 10 ** 6)), 'header.frame_id says 1000000 bytes, more than the bytes left hold'),

@@ -11,7 +11,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from ddarm.ros.interface import joint_state_msg, read_joint_state, serialized_stamp, time_msg
+from ddarm.ros.cdr import read_stamp
+from ddarm.ros.interface import joint_state_msg, read_joint_state, time_msg
 from ddarm.ros.round_trip import round_trips_in_process
 from ddarm.samples import MessageError
 
@@ -24,7 +25,7 @@ def test_the_stamp_read_in_place_is_the_deserialized_one(seconds):
     clock = Clock(clock=time_msg(seconds))
     for message in (state, clock):
         data = serialize_message(message)
-        stamp = serialized_stamp(data, 'a message')
+        stamp = read_stamp(data, 'a message')
         expected = deserialize_message(data, type(message))
         expected = expected.header.stamp if isinstance(message, JointState) else expected.clock
         assert (stamp.sec, stamp.nanosec) == (expected.sec, expected.nanosec)
@@ -39,7 +40,7 @@ def test_the_stamp_read_in_place_is_the_deserialized_one(seconds):
 ])
 def test_what_is_no_stamped_message_is_refused_naming_it(data, problem):
     with pytest.raises(MessageError, match=re.escape(problem)) as refused:
-        serialized_stamp(data, 'joint state on /joint_states')
+        read_stamp(data, 'joint state on /joint_states')
     assert 'joint state on /joint_states' in str(refused.value)
 
 

@@ -25,8 +25,8 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                  EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC,
-                                 SAMPLE_QOS, read_joint_state, reference_msg, sample_index, serialized_stamp)
-from ddarm.ros.cdr import decode_joint_state
+                                 SAMPLE_QOS, read_joint_state, reference_msg, sample_index)
+from ddarm.ros.cdr import decode_joint_state, read_stamp
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
                                        SchedulingOptions, arm_parameters, node_parameters, same_read_only,
@@ -98,7 +98,7 @@ class Recording:
     """What the driver heard during one episode: states and commands by sample, as the CDR that crossed DDS.
 
     They are read (`result_from_recording`) once the episode has ended; while it runs, only their
-    stamps are (`ddarm.ros.interface.serialized_stamp`).
+    stamps are (`ddarm.ros.cdr.read_stamp`).
     """
 
     k_max: int
@@ -359,7 +359,7 @@ class GraphDriver(Node):
     def _sample_of(self, data: bytes, what: str) -> tuple[object, int] | None:
         """(stamp, sample n) of a serialized state or command; None, the episode failed, if it has none."""
         try:
-            stamp = serialized_stamp(data, what)
+            stamp = read_stamp(data, what)
             return stamp, sample_index(stamp, self.period)
         except MessageError as error:
             self.recording.fail(f'unusable {what}: {error}')

@@ -8,7 +8,6 @@ number reaches the core.
 from __future__ import annotations
 
 import array
-import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,26 +76,6 @@ def seconds(stamp: Time | Duration) -> float:
 def sample_index(stamp: Time, period: float) -> int:
     """n for a stamp t_n = n Δ; refuses a negative stamp or one between sample instants."""
     return sample_at(seconds(stamp), period)
-
-
-# The first two bytes of a serialized message: little-endian CDR, as rmw_fastrtps writes it on this
-# machine and as the bag reader (ddarm.recording.bags.deserialize) takes it.
-CDR_LITTLE_ENDIAN = b'\x00\x01'
-
-
-def serialized_stamp(data: bytes, what: str) -> Time:
-    """The stamp of a serialized stamped message (a JointState's header.stamp, a Clock's clock).
-
-    Read in place because it is the message's first field, right after the encapsulation: one
-    microsecond where deserialising the message costs thirty, at every sample of a recorder.
-    """
-    if len(data) < 12 or data[:2] != CDR_LITTLE_ENDIAN:
-        raise MessageError(f'{what}: not a stamped message in little-endian CDR ({len(data)} bytes, '
-                           f'encapsulation {bytes(data[:2]).hex() or "none"})')
-    sec, nanosec = struct.unpack_from('<iI', data, 4)
-    if nanosec >= 1_000_000_000:
-        raise MessageError(f'{what}: stamp nanosec = {nanosec} is not below 10^9')
-    return Time(sec=sec, nanosec=nanosec)
 
 
 @dataclass(frozen=True)

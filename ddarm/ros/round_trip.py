@@ -74,7 +74,8 @@ def measure_round_trips(count: int, timeout: float = 120.0, serialized: bool = F
     from sensor_msgs.msg import JointState
 
     from ddarm.ros.executors import node_executor
-    from ddarm.ros.interface import SAMPLE_QOS, serialized_stamp
+    from ddarm.ros.cdr import read_stamp
+    from ddarm.ros.interface import SAMPLE_QOS
     from ddarm.ros.session import session_namespace
 
     namespace = session_namespace()
@@ -99,7 +100,7 @@ def measure_round_trips(count: int, timeout: float = 120.0, serialized: bool = F
         publisher.publish(messages[n])
 
     def on_pong(msg) -> None:
-        stamp = serialized_stamp(msg, 'pong') if serialized else msg.header.stamp
+        stamp = read_stamp(msg, 'pong') if serialized else msg.header.stamp
         n = round(stamp.nanosec * 1e-6) + 1000 * stamp.sec
         if not started.done():
             started.set_result(True)  # the hello came back: both directions are matched; sample 0 was the hello
