@@ -158,15 +158,15 @@ class DelayBuffer:
         return len(self._history)
 
 
-def _vector(values, dof: int | None = None) -> np.ndarray:
-    """`values` as the compiled law reads them: float64, C-contiguous, `dof` of them when given."""
+def _vector(values, dof: int) -> np.ndarray:
+    """`values` as the compiled law reads them: `dof` float64, C-contiguous."""
     vector = np.ascontiguousarray(values, dtype=float)
-    if dof is not None and vector.shape != (dof,):
+    if vector.shape != (dof,):
         raise GainError(f'the law needs {dof} values per joint quantity, got shape {vector.shape}')
     return vector
 
 
-def _column(values, dof: int | None = None) -> np.ndarray:
+def _column(values, dof: int) -> np.ndarray:
     return _vector(values, dof)[:, None]
 
 
@@ -189,8 +189,8 @@ class _Law:
         zero = np.zeros(chain.dof)
         self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
         self.coulomb_friction = checked_friction('coulomb_friction', coulomb_friction, chain.dof)
-        self._friction = (zero if self.viscous_friction is None else _vector(self.viscous_friction),
-                          zero if self.coulomb_friction is None else _vector(self.coulomb_friction))
+        self._friction = (zero if self.viscous_friction is None else _vector(self.viscous_friction, chain.dof),
+                          zero if self.coulomb_friction is None else _vector(self.coulomb_friction, chain.dof))
         column = np.zeros((chain.dof, 1))
         self._command_one = typed_entry(_command_one, self.code, self._inverse_dynamics, column, column, zero, zero,
                                         zero, zero, column, column, *self._friction)
@@ -198,7 +198,7 @@ class _Law:
     def set_gains(self, kp, kv) -> None:
         self.kp, self.kv = checked_gains(kp, kv, self.chain.dof)
         # As the compiled law reads them (one lane), made once here rather than at every sample.
-        self._gain_columns = (_column(self.kp), _column(self.kv))
+        self._gain_columns = (_column(self.kp, self.chain.dof), _column(self.kv, self.chain.dof))
 
     def torque(self, measured: Measurement, reference: ReferencePoint, gravity_ref: np.ndarray | None = None):
         """The command from the measured sample and the reference at t_n.

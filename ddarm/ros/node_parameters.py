@@ -69,7 +69,8 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     """
     plant = {
         'mode': mode, 'period': spec.period, 'substeps': spec.substeps, 'command_timeout': COMMAND_TIMEOUT,
-        'required_subscribers': GRAPH_SUBSCRIBERS, 'required_clock_subscribers': 1, 'max_samples': plan.k_max + 1, 'autostart': False,
+        'required_subscribers': GRAPH_SUBSCRIBERS, 'required_clock_subscribers': 1, 'max_samples': plan.k_max + 1,
+        'autostart': False,
         'trajectory': spec.trajectory, 'duration': spec.duration, 'tau': spec.tau,
     }
     optional = {'torque_limit': None if plan.torque_limit is None else plan.torque_limit.tolist(),
