@@ -9,11 +9,14 @@ import sys
 import threading
 
 import numpy as np
+import pinocchio as pin
 import pytest
+from dynamics_checks import compiled_mass_matrix_and_acceleration
 
-from ddarm.physics import dynamics
+from ddarm.physics import dynamics, generated
 from ddarm.physics.arm import ModelError
-from ddarm.physics.dynamics import cache_folder, compiled_dynamics, forward_dynamics_at, inverse_dynamics_at, load_chain
+from ddarm.physics.dynamics import (cache_folder, chain_from_model, compiled_dynamics, forward_dynamics_at,
+                                    inverse_dynamics_at, load_chain)
 from ddarm.physics.generated import dynamics_source
 
 
@@ -139,3 +142,83 @@ def test_a_second_process_loads_the_compiled_dynamics_the_first_one_cached(tmp_p
         assert run.returncode == 0, run.stderr
     assert runs[0].stdout == runs[1].stdout
     assert list((tmp_path / 'cache' / 'dynamics' / '__pycache__').glob('*.nbi'))
+
+
+def random_model(n: int, seed: int, tree: bool) -> pin.Model:
+    """n joints (a tree, or one after the other) of every kind the chain takes: revolute and prismatic about
+    unaligned axes, about x, z and y; random placements, inertias and armature."""
+    rng = np.random.default_rng(seed)
+    model = pin.Model()
+    for i in range(n):
+        parent = int(rng.integers(0, i)) + 1 if tree and i > 0 else i
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        joint = [pin.JointModelRevoluteUnaligned(*axis), pin.JointModelRX(), pin.JointModelPrismaticUnaligned(*axis),
+                 pin.JointModelRZ(), pin.JointModelPY()][i % 5]
+        rotation, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        placement = pin.SE3(rotation * np.sign(np.linalg.det(rotation)), rng.normal(size=3) * 0.3)
+        joint_id = model.addJoint(parent, joint, placement, f'j{i}')
+        shape = rng.normal(size=(3, 3)) * 0.1
+        model.appendBodyToJoint(joint_id, pin.Inertia(rng.uniform(0.5, 2.0), rng.normal(size=3) * 0.1,
+                                                      shape @ shape.T + 0.01 * np.eye(3)), pin.SE3.Identity())
+    model.armature = rng.uniform(0.05, 0.3, n)
+    return model
+
+
+@pytest.mark.parametrize('n, tree', [(2 * generated.UNROLLED_JOINTS, True), (generated.UNROLLED_JOINTS + 1, False)])
+def test_looped_dynamics_beyond_the_unrolled_size_are_pinocchios(fresh_cache, n, tree):
+    model = random_model(n, seed=n, tree=tree)
+    chain = chain_from_model(model)
+    assert 'for i in range(N)' in dynamics_source(chain)
+    data = model.createData()
+    rng = np.random.default_rng(5)
+    q, v, a = rng.uniform(-3, 3, (8, n)), rng.uniform(-3, 3, (8, n)), rng.uniform(-10, 10, (8, n))
+    mass_scale = rng.uniform(0.8, 1.3, n)
+    plant = model.copy()
+    for joint_id, factor in enumerate(mass_scale, start=1):
+        inertia = plant.inertias[joint_id]
+        plant.inertias[joint_id] = pin.Inertia(factor * inertia.mass, inertia.lever, factor * inertia.inertia)
+    torque = inverse_dynamics_at(chain, q, v, a, mass_scale=mass_scale)
+    mass_matrix, acceleration = compiled_mass_matrix_and_acceleration(chain, q, v, torque, mass_scale)
+    for m in range(len(q)):
+        expected_torque = pin.rnea(plant, data, q[m], v[m], a[m])
+        np.testing.assert_allclose(torque[m], expected_torque, rtol=1e-12, atol=1e-12 * np.max(np.abs(expected_torque)))
+        # M from Pinocchio's RNEA, column by column (its crba is off for PrismaticUnaligned joints in a tree).
+        gravity = pin.rnea(plant, data, q[m], np.zeros(n), np.zeros(n)).copy()
+        expected_mass = np.stack([pin.rnea(plant, data, q[m], np.zeros(n), np.eye(n)[j]) - gravity
+                                  for j in range(n)], axis=1)
+        np.testing.assert_allclose(mass_matrix[m], expected_mass, rtol=1e-9, atol=1e-10 * np.max(expected_mass))
+        np.testing.assert_allclose(acceleration[m], pin.aba(plant, data, q[m], v[m], torque[m]), rtol=1e-9,
+                                   atol=1e-9)
+
+
+def test_the_generated_code_grows_linearly_with_the_joint_count_beyond_the_unrolled_size():
+    sizes = {n: len(dynamics_source(chain_from_model(random_model(n, seed=1, tree=False)))) for n in (16, 32, 64)}
+    per_joint = [(sizes[32] - sizes[16]) / 16, (sizes[64] - sizes[32]) / 32]
+    # Each joint adds its constants (about 35 numbers), not code: unrolled, 16 to 32 joints added 60 kB a joint.
+    assert max(per_joint) < 1000 and max(per_joint) < 1.2 * min(per_joint), sizes
+
+
+def serial_urdf(path, joints: int):
+    links = ['<link name="l0"/>'] + [
+        f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/><origin xyz="0 0 0.1"/>'
+        f'<axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="10" velocity="3"/></joint>'
+        f'<link name="l{i + 1}"><inertial><mass value="0.1"/><inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" iyz="0" '
+        f'izz="1e-3"/></inertial></link>' for i in range(joints)]
+    path.write_text(f'<?xml version="1.0"?><robot name="snake">{"".join(links)}</robot>')
+    return str(path)
+
+
+def test_a_chain_beyond_the_joint_bound_is_refused_naming_the_count_and_the_bound(tmp_path, monkeypatch):
+    urdf = serial_urdf(tmp_path / 'snake.urdf', 200)
+    monkeypatch.setattr(generated, '_Chain', None)  # nothing may be generated
+    with pytest.raises(ModelError, match=f'200 joints.*at most {dynamics.MAX_JOINTS}'):
+        load_chain(urdf)
+    chain = load_chain(None)
+    many = dynamics.Chain(**{key: np.repeat(value, 22, axis=0) if key != 'gravity' else value
+                             for key, value in chain.__dict__.items()})
+    with pytest.raises(ModelError, match=f'66 joints.*at most {dynamics.MAX_JOINTS}'):
+        dynamics_source(many)
+    # Up to the bound, every joint controlled: loaded, and the rest of them locked is a small chain.
+    assert load_chain(serial_urdf(tmp_path / 'long.urdf', dynamics.MAX_JOINTS)).dof == dynamics.MAX_JOINTS
+    assert load_chain(urdf, ('j0', 'j1')).dof == 2

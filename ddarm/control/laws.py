@@ -10,13 +10,12 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import Arm
-from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics, typed_entry
+from ddarm.physics.dynamics import Chain, cached_njit, compiled_dynamics, typed_entry
 
 PD_GRAVITY, COMPUTED_TORQUE = 0, 1  # the compiled functions' code for each law
 MAX_DELAY = 100
@@ -48,13 +47,13 @@ def gravity_feedforward(model: Arm, q_ref: np.ndarray) -> np.ndarray:
     return np.array([model.gravity(q) for q in q_ref])
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def measured_sample(n, delay):
     """The sample whose state the torque for sample n is computed from: n - d, or 0 while n < d."""
     return n - delay if n >= delay else 0
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, command, lanes):
     """(2.1): P = K_p e + K_v ė + Ĝ(q^d(t_n)), e and ė at the measured sample."""
     for i in range(qm.shape[0]):
@@ -63,7 +62,7 @@ def pd_gravity(kp, kv, q_ref_measured, v_ref_measured, gravity_ref, qm, vm, comm
                              + kv[i, b] * (v_ref_measured[i] - vm[i, b]) + gravity_ref[i])
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def computed_torque(inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref, qm, vm,
                     viscous_friction, coulomb_friction, commanded_acceleration, command, lanes):
     """(2.6): P = M̂(q)(q̈^d + K_p e + K_v ė) + V̂(q, q̇) + Ĝ(q) + F̂(q̇) at the measured state.
@@ -82,7 +81,7 @@ def computed_torque(inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref
             command[i, b] += viscous_friction[i] * vm[i, b] + coulomb_friction[i] * np.sign(vm[i, b])
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def law_command(controller, inverse_dynamics, model_scale, kp, kv, q_ref_measured, v_ref_measured, a_ref,
                 gravity_ref, qm, vm, viscous_friction, coulomb_friction, commanded_acceleration, command, lanes):
     """The command of the law coded `controller` (a law class's `code`) for every lane."""
@@ -93,7 +92,7 @@ def law_command(controller, inverse_dynamics, model_scale, kp, kv, q_ref_measure
                         viscous_friction, coulomb_friction, commanded_acceleration, command, lanes)
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def _command_one(controller, inverse_dynamics, kp, kv, q_ref_measured, v_ref_measured, a_ref, gravity_ref, qm, vm,
                  viscous_friction, coulomb_friction):
     """One episode's command, its workspace made here: the controller node's step."""

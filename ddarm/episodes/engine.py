@@ -14,7 +14,6 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 
 from ddarm.arrays import per_episode
@@ -26,7 +25,7 @@ from ddarm.episodes.spec import (EpisodeError, EpisodePlan, EpisodeSpec, check_e
                                   plan_episode, plant_chain, plant_options)
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, disturbed_start
-from ddarm.physics.dynamics import COMPILED, compiled_dynamics, load_chain
+from ddarm.physics.dynamics import cached_njit, compiled_dynamics, load_chain
 from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
 
@@ -74,7 +73,7 @@ def _thread_pool(threads: int) -> ThreadPoolExecutor:
         return _thread_pools[threads]
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def _run_chunk(start, lanes, plant_dynamics, model_dynamics, controller, delay, q0, members, episode, plant, record,
                series, outcome):
     """Members start … start + lanes - 1 through the loop of spec §5, all samples in step.
@@ -146,7 +145,7 @@ def _run_chunk(start, lanes, plant_dynamics, model_dynamics, controller, delay, 
         error_sum[start + b], torque_sum[start + b] = first[b], second[b]
 
 
-@numba.njit(**COMPILED, nogil=True)
+@cached_njit(nogil=True)
 def _run_chunks(first_chunk, chunk_stride, lanes, plant_dynamics, model_dynamics, controller, delay, q0, members,
                 episode, plant, record, series, outcome):
     """One thread's share of the batch: chunks first_chunk, first_chunk + chunk_stride, … of `lanes` members."""
@@ -281,8 +280,8 @@ def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
 def warm_up() -> float:
     """Compile every compiled piece of the loop, or load it from numba's cache, and return the seconds it took.
 
-    The compiled code is written to __pycache__ once; a process that starts node processes calls
-    this first, so that a fresh checkout's nodes load it instead of each compiling it at start-up.
+    The compiled code is written to ddarm's cache (ddarm.physics.dynamics.cache_folder) once; a process that starts
+    node processes calls this first, so that a fresh checkout's nodes load it instead of each compiling it at start-up.
     """
     started = time.perf_counter()
     chain = load_chain(None)

@@ -6,11 +6,10 @@ the episodes, `score_series` over recorded samples (the ROS driver's and the bag
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from ddarm.errors import DdarmError
-from ddarm.physics.dynamics import COMPILED
+from ddarm.physics.dynamics import cached_njit
 
 INDICES = ('I1', 'I2', 'I')
 # The paper numbers its indices by equation: (2.5) is I1, (3.2) is I.
@@ -39,7 +38,7 @@ def torque_weights(nominal: np.ndarray) -> np.ndarray:
     return TORQUE_WEIGHT_PERCENT / largest
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def accumulate(q_ref, q, applied, nominal, error_weight, torque_weight, error_sum, torque_sum, b):
     """Adds sample j's terms for episode b: Σ_i |e_i(jΔ)| S_i to (2.5)'s sum, Σ_i |P_i - P_i^nom| R_i to I2's.
 
@@ -50,7 +49,7 @@ def accumulate(q_ref, q, applied, nominal, error_weight, torque_weight, error_su
         torque_sum[b] += abs(applied[i, b] - nominal[i]) * torque_weight[i]
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def _sums(q_ref, q, torque, nominal, error_weight, torque_weight):
     error_sum, torque_sum = np.zeros(1), np.zeros(1)
     n = q.shape[1]

@@ -3,7 +3,8 @@
 The model comes from Pinocchio (ddarm.physics.arm reads the URDF) as a Chain of arrays;
 ddarm.physics.generated writes, for that chain, inverse dynamics (RNEA) and forward dynamics
 (CRBA + Cholesky), each as Pinocchio's algorithm of that name, unrolled with the model's
-constants. `compiled_dynamics` compiles them (numba, cached on disk by the code's hash) and hands
+constants (looped for a long chain; at most MAX_JOINTS joints). `compiled_dynamics` compiles them (numba, cached
+by the code's hash in a folder only this user can write, each cached file checksummed) and hands
 them to the compiled loops as first-class functions, so that the plant step, the laws and the
 batch engine are compiled once for every arm. Why not Pinocchio at run time: on this project's
 2-core machine its abaInParallel takes 0.48 ms for one RK4 stage of 1,000 states, which caps the
@@ -14,13 +15,19 @@ prismatic joints, every arm in config/arms).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import importlib.machinery
 import importlib.util
+import inspect
+import io
 import os
+import pickle
 import stat
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -29,9 +36,15 @@ import numba
 import numpy as np
 import pinocchio as pin
 from numba import types
+from numba.core.caching import CompileResultCacheImpl, FunctionCache, IndexDataCacheFile, InTreeCacheLocator
 from numba.core.types.function_type import CompileResultWAP
 
 from ddarm.physics.arm import PINOCCHIO_JOINTS, ModelError, is_prismatic, load_arm, urdf_stamp
+# The most joints a chain may have (ddarm's one bound on joints), refused before anything is generated beyond
+# it. The generated code and its compile time grow linearly with the joint count (generated.py loops over the
+# joints beyond UNROLLED_JOINTS), the forward dynamics' work per state as n·depth + n³/6 (CRBA and Cholesky): a few
+# times 10⁵ operations per state at 64 joints.
+from ddarm.samples import MAX_JOINTS
 
 REVOLUTE, PRISMATIC = 0, 1
 
@@ -66,9 +79,16 @@ class Chain:
                 self.mass, self.lever, self.inertia)
 
 
+def check_joint_count(count: int) -> None:
+    if count > MAX_JOINTS:
+        raise ModelError(f'the arm has {count} joints to control; ddarm\'s compiled dynamics take at most {MAX_JOINTS} '
+                         f'(lock the others in the motion file)')
+
+
 def chain_from_model(model: pin.Model) -> Chain:
     """The arrays the compiled dynamics read, from a model of 1-DOF revolute (bounded or continuous) or prismatic
     joints; positions are angles and lengths."""
+    check_joint_count(model.njoints - 1)
     parent, kind, axis, rotation, translation = [], [], [], [], []
     # Each joint's axis from its motion subspace S (linear part for prismatic, angular for revolute joints): the
     # Python bindings expose no axis for every joint model (RevoluteUnboundedUnaligned has none).
@@ -150,51 +170,98 @@ class Dynamics:
 
 
 _process_folder: Path | None = None
+_said: set[str] = set()
 
 
-def _private_folder(folder: Path) -> Path | None:
-    """`folder`, made if missing, if it is a real folder of this user that no one else may write (numba
-    unpickles what it finds there); else None."""
+def _say(line: str) -> None:
+    print(f'ddarm: {line}', file=sys.stderr, flush=True)
+
+
+def _say_once(line: str) -> None:
+    if line not in _said:
+        _said.add(line)
+        _say(line)
+
+
+def _why_not_private(folder: Path) -> str | None:
+    """Why numba may not load code from `folder` (made if missing), or None: it unpickles what it finds there, so
+    the folder must be this user's, writable by no one else, and so must every folder above it be (root's or this
+    user's, and writable by others only with the sticky bit, as /tmp), or someone else could replace it."""
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         status = os.lstat(folder)
-    except OSError:
-        return None
-    if (not stat.S_ISDIR(status.st_mode) or status.st_uid != os.getuid() or status.st_mode & 0o022
-            or not os.access(folder, os.W_OK)):
-        return None
-    return folder
+    except OSError as error:
+        return f'cannot be made a folder ({error.strerror or error})'
+    if not stat.S_ISDIR(status.st_mode):
+        return 'is not a folder'
+    if status.st_uid != os.getuid():
+        return f'is owned by user {status.st_uid}, not by this user ({os.getuid()})'
+    if status.st_mode & 0o022:
+        return f'is writable by {"others" if status.st_mode & 0o002 else "its group"} (mode {status.st_mode & 0o777:o})'
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return 'cannot be written by this user'
+    for parent in folder.parents:
+        status = os.stat(parent)
+        if status.st_uid not in (0, os.getuid()):
+            return f'is inside {parent}, owned by user {status.st_uid}, who could replace it'
+        if status.st_mode & 0o022 and not status.st_mode & stat.S_ISVTX:
+            return f'is inside {parent}, which others may write (mode {status.st_mode & 0o777:o}), so could replace it'
+    return None
 
 
 def cache_folder() -> Path:
-    """Where generated dynamics and their compiled code are kept: $DDARM_CACHE_DIR, else the user's
-    cache folder ($XDG_CACHE_HOME or ~/.cache)/ddarm, else (a home that cannot be written) a private
-    folder of this user in the temporary folder."""
+    """Where generated dynamics and their compiled code are kept: $DDARM_CACHE_DIR (refused unless private), else
+    the user's cache folder ($XDG_CACHE_HOME or ~/.cache)/ddarm, else a private folder of this user in the temporary
+    folder, else one of this process; a folder passed over is named on stderr with the reason."""
     given = os.environ.get(CACHE_ENVIRONMENT)
     if given:
-        return Path(given)
+        folder = Path(given).resolve()
+        why = _why_not_private(folder)
+        if why is not None:
+            raise ModelError(f'the dynamics cache {folder} (${CACHE_ENVIRONMENT}) {why}: numba runs the pickled code '
+                             f'it finds there; set {CACHE_ENVIRONMENT} to a folder only this user can write')
+        return folder
     base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
     for folder in (Path(base) / 'ddarm', Path(tempfile.gettempdir()) / f'ddarm-{os.getuid()}'):
-        if _private_folder(folder) is not None:
+        folder = folder.resolve()
+        why = _why_not_private(folder)
+        if why is None:
             return folder
+        _say_once(f'not keeping compiled dynamics in {folder}: it {why}')
     global _process_folder
     if _process_folder is None:  # this process's own: its compiled code is not kept beyond it
-        _process_folder = Path(tempfile.mkdtemp(prefix='ddarm-'))
+        _process_folder = Path(tempfile.mkdtemp(prefix='ddarm-')).resolve()
+        why = _why_not_private(_process_folder)
+        if why is not None:
+            raise ModelError(f'no private folder for the compiled dynamics: {_process_folder} {why}; set '
+                             f'{CACHE_ENVIRONMENT} to a folder only this user can write')
     return _process_folder
 
 
+def _private_subfolder(folder: Path) -> Path:
+    why = _why_not_private(folder)
+    if why is not None:
+        raise ModelError(f'the dynamics cache\'s folder {folder} {why}: numba runs the pickled code it finds there; '
+                         f'remove it, or set {CACHE_ENVIRONMENT} to a folder only this user can write')
+    return folder
+
+
 def _module_file(source: str) -> tuple[str, Path]:
-    """The generated module's name and file, written once: a file already there is never rewritten, since
-    numba's cache of it is stamped with its modification time (many processes may ask at once)."""
+    """The generated module's name and file, in a private folder: a file already there is kept if it holds
+    `source`, else replaced, saying so (many processes may ask at once)."""
     content = source.encode('utf-8')
     name = f'ddarm_dynamics_{hashlib.sha256(content).hexdigest()[:24]}'
     folder = cache_folder() / 'dynamics'
     path = folder / f'{name}.py'
     draft = None
     try:
-        if path.is_file() and path.read_bytes() == content:
-            return name, path
-        folder.mkdir(parents=True, exist_ok=True)
+        _private_subfolder(folder)
+        # numba keeps the kernels' compiled code here (see _CheckedLocator): checked before anything is read.
+        _private_subfolder(folder / '__pycache__')
+        if path.is_file():
+            if path.read_bytes() == content:
+                return name, path
+            _say(f'{path} is not the code generated for it (truncated or changed): writing it again')
         with tempfile.NamedTemporaryFile('wb', dir=folder, suffix='.tmp', delete=False) as file:
             draft = file.name
             file.write(content)
@@ -214,6 +281,155 @@ def _module_file(source: str) -> tuple[str, Path]:
     return name, path
 
 
+class _DamagedFile(Exception):
+    def __init__(self, path: str, why: str) -> None:
+        super().__init__(f'{path} {why}')
+        self.path = path
+
+
+class _ChecksummedFiles(IndexDataCacheFile):
+    """numba's index and data files of a kernel, each written with the SHA-256 of its content in front and read
+    only if it matches: a truncated or overwritten file is found before pickle or LLVM sees it (one wrong byte
+    of compiled code could crash the process or change a number)."""
+
+    def _verified(self, path: str) -> bytes:
+        with open(path, 'rb') as file:
+            content = file.read()
+        digest, payload = content[:_DIGEST], content[_DIGEST:]
+        if len(content) < _DIGEST or hashlib.sha256(payload).digest() != digest:
+            raise _DamagedFile(path, 'is damaged (its checksum does not match)')
+        return payload
+
+    def _load_index(self):
+        try:
+            payload = self._verified(self._index_path)
+        except FileNotFoundError:
+            return {}
+        stream = io.BytesIO(payload)
+        if pickle.load(stream) != self._version:
+            return {}
+        stamp, overloads = pickle.loads(stream.read())
+        return overloads if stamp == self._source_stamp else {}
+
+    def _load_data(self, name):
+        return pickle.loads(self._verified(self._data_path(name)))
+
+    @contextlib.contextmanager
+    def _open_for_write(self, filepath):
+        buffer = io.BytesIO()
+        yield buffer
+        with super()._open_for_write(filepath) as file:
+            file.write(hashlib.sha256(buffer.getvalue()).digest() + buffer.getvalue())
+
+
+_DIGEST = hashlib.sha256().digest_size
+
+
+class _CheckedLocator(InTreeCacheLocator):
+    """Where _CheckedCache keeps a function's compiled code: folder(), checked private (_private_subfolder) before
+    anything is read or written there; stamped, as numba's own, with the hash of the function's source file."""
+
+    def __init__(self, py_func, py_file: str, folder: Callable[[], Path]) -> None:
+        super().__init__(py_func, py_file)
+        self._folder = folder
+
+    def get_cache_path(self):
+        return str(self._folder())
+
+    def ensure_cache_path(self):
+        _private_subfolder(Path(self.get_cache_path()))
+
+
+class _CheckedCacheImpl(CompileResultCacheImpl):
+    def __init__(self, py_func, folder: Callable[[], Path]):  # numba's own lets NUMBA_CACHE_DIR and others move it
+        self._lineno = py_func.__code__.co_firstlineno
+        path = inspect.getfile(py_func)
+        self._locator = _CheckedLocator(py_func, path, folder)
+        self._filename_base = self.get_filename_base(f'{Path(path).stem}.{py_func.__qualname__}',
+                                                     getattr(sys, 'abiflags', ''))
+
+
+class _CheckedCache(FunctionCache):
+    """numba's cache of one function (`what`), only in the checked folder folder(), every file checksummed; a
+    damaged file is deleted, said on stderr, and the function compiled (and cached) again. The folder is found at
+    each load and save, not when the function is defined: a module of compiled loops is imported before the
+    command has read its options, and $DDARM_CACHE_DIR may be refused."""
+
+    def __init__(self, py_func, folder: Callable[[], Path], what: str) -> None:  # numba's own finds its folder now
+        self._name = repr(py_func)
+        self._py_func = py_func
+        self._impl = _CheckedCacheImpl(py_func, folder)
+        self._what = what
+        self.enable()
+
+    @property
+    def cache_path(self):
+        return self._impl.locator.get_cache_path()
+
+    @property
+    def _cache_file(self):
+        return _ChecksummedFiles(self.cache_path, self._impl.filename_base, self._impl.locator.get_source_stamp())
+
+    def load_overload(self, sig, target_context):
+        self._impl.locator.ensure_cache_path()
+        try:
+            return super().load_overload(sig, target_context)
+        except _DamagedFile as damaged:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(damaged.path)
+            _say(f'{damaged}: deleted it, compiling {self._what} again')
+            return None
+
+
+def generated_kernel(options: dict):
+    """numba.njit(KERNEL_SIGNATURE, **options) for a generated module's kernel, compiled now, its compiled code
+    cached (options['cache']) by _CheckedCache in the __pycache__ beside the module (checked by _module_file)."""
+    def compile_kernel(function):
+        dispatcher = numba.njit(**{**options, 'cache': False})(function)
+        if options.get('cache'):
+            folder = Path(inspect.getfile(function)).parent / '__pycache__'
+            # What Dispatcher.enable_caching does, with this cache.
+            dispatcher._cache = _CheckedCache(function, lambda: folder, 'the arm\'s dynamics')
+        dispatcher.compile(KERNEL_SIGNATURE.args)
+        dispatcher.disable_compile()
+        return dispatcher
+    return compile_kernel
+
+
+def _loops_folder(source: str) -> Path:
+    """The private folder of the compiled code of ddarm's loops in the module file `source`: cache_folder()/loops/
+    <module>-<hash of the file's path>, one per copy of ddarm (two checkouts' loops may differ; sharing a folder,
+    each would find the other's cache stale and overwrite it)."""
+    path = Path(source).resolve()
+    loops = _private_subfolder(cache_folder() / 'loops')
+    return loops / f'{path.stem}-{hashlib.sha256(str(path).encode()).hexdigest()[:16]}'
+
+
+def cached_njit(**options):
+    """numba.njit(**COMPILED, **options) for ddarm's own compiled loops: compiled at the first call (for its
+    argument types), the compiled code cached by _CheckedCache in _loops_folder, not numba's __pycache__ or
+    $NUMBA_CACHE_DIR."""
+    def lazily_compiled(function):
+        dispatcher = numba.njit(**{**COMPILED, **options, 'cache': False})(function)
+        source = inspect.getfile(function)
+        dispatcher._cache = _CheckedCache(function, lambda: _loops_folder(source),
+                                          f'{function.__module__}.{function.__qualname__}')
+        return dispatcher
+    return lazily_compiled
+
+
+class _GeneratedLoader(importlib.machinery.SourceFileLoader):
+    """Runs a generated module from the source _module_file checked: no bytecode of it is read or written (a .pyc in
+    the cache would be one more file to damage, and Python runs one with a valid header unchecked)."""
+
+    def __init__(self, name: str, path: Path, source: str) -> None:
+        super().__init__(name, str(path))
+        self.source = source
+
+    def get_code(self, fullname):
+        return compile(self.source, self.path, 'exec', dont_inherit=True)
+
+
 def _chain_key(chain: Chain) -> bytes:
     return b''.join(np.ascontiguousarray(array).tobytes() + str(array.shape).encode() for array in chain.arrays())
 
@@ -230,10 +446,11 @@ def compiled_dynamics(chain: Chain) -> Dynamics:
     with _loading:
         if key not in _loaded:
             from ddarm.physics.generated import dynamics_source
-            name, path = _module_file(dynamics_source(chain))
+            source = dynamics_source(chain)
+            name, path = _module_file(source)
             module = sys.modules.get(name)
             if module is None:
-                spec = importlib.util.spec_from_file_location(name, path)
+                spec = importlib.util.spec_from_file_location(name, path, loader=_GeneratedLoader(name, path, source))
                 module = importlib.util.module_from_spec(spec)
                 # numba finds the module of compiled code by name, also when it loads it from its cache.
                 sys.modules[name] = module

@@ -10,12 +10,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.physics.dynamics import COMPILED, Chain, compiled_dynamics, typed_entry
+from ddarm.physics.dynamics import Chain, cached_njit, compiled_dynamics, typed_entry
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes
@@ -91,7 +90,7 @@ class PlantOptions:
 
 
 # The compiled functions keep episodes on the last axis ("lanes"): see ddarm.physics.dynamics.
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def saturate(command, limit, applied, lanes):
     """The torque the actuators apply: each command clamped to ±limit (inf: no limit), sign kept."""
     for i in range(command.shape[0]):
@@ -99,7 +98,7 @@ def saturate(command, limit, applied, lanes):
             applied[i, b] = min(max(command[i, b], -limit[i, b]), limit[i, b])
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v, load, lanes):
     """P + P^z - F(q̇): the actuators' torque plus the plant's other joint torques (spec §3)."""
     for i in range(v.shape[0]):
@@ -108,14 +107,14 @@ def _plant_load(applied, external_torque, viscous_friction, coulomb_friction, v,
                                           - coulomb_friction[i] * np.sign(v[i, b]))
 
 
-@numba.njit(**COMPILED, inline='always')
+@cached_njit(inline='always')
 def step_workspace(n, lanes):
     """Scratch arrays for `advance`: the joint torques and the RK4 stages."""
     return (np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)), np.empty((n, lanes)),
             np.empty((4, n, lanes)), np.empty((4, n, lanes)))
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def advance(forward_dynamics, mass_scale, options, applied, q, v, within, scratch, lanes):
     """Integrate [t_n, t_{n+1}) under the held torque `applied` (RK4 in `substeps` steps; spec §3, §5, §11).
 
@@ -158,7 +157,7 @@ def advance(forward_dynamics, mass_scale, options, applied, q, v, within, scratc
                 q[i, b], v[i, b] = qn[i, b], vn[i, b]
 
 
-@numba.njit(**COMPILED)
+@cached_njit()
 def _advance_one(forward_dynamics, mass_scale, options, applied, q, v):
     """`advance` for one episode, its workspace made here: the plant node's step."""
     within = np.empty(1, dtype=np.bool_)
