@@ -77,9 +77,8 @@ def write_motion(path: Path, joint_names, start, goal, duration, locked=None) ->
 
 
 def urdf_efforts(urdf: Path, names) -> np.ndarray:
-    """<limit effort> of the named joints, from the XML."""
-    joints = {joint.get('name'): joint for joint in ElementTree.parse(urdf).getroot().iter('joint')
-              if joint.get('type') is not None}
+    """<limit effort> of the named joints, from the XML (<robot>'s own <joint> elements, as urdfdom reads them)."""
+    joints = {joint.get('name'): joint for joint in ElementTree.parse(urdf).getroot().findall('joint')}
     return np.array([float(joints[name].find('limit').get('effort')) for name in names])
 
 
