@@ -5,6 +5,10 @@ Two ways to sample (`sampling`): `state`, one command per stamped state of ddarm
 against a plant or robot the node did not start (the latest /joint_states, the reference from the
 `motion` file). The commands go out as a stamped JointState (ddarm's plant) or as the bare
 Float64MultiArray a ros2_control forward_command_controller on effort interfaces takes.
+
+On a timer (robot mode) the node guards the robot as far as the URDF tells it: every effort clamped to the
+joint's effort limit, a state beyond the position or velocity limits (or moving faster than they allow) refused,
+and stamps and clock jumps bounded so that none blocks the commands after it (`ddarm.ros.interface.RobotLimits`).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import NODE_PERIOD_RANGE
 from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EFFORT_COMMAND_TOPIC, GAIN_KEYS,
                                      JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC, ROBOT_COMMAND_QOS,
-                                     ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotState, descriptor,
+                                     ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotLimits, RobotState, descriptor,
                                      effort_array_msg, gain_parameter, given_gains, plain_parameters,
                                      proposed_values, read_joint_state, read_reference, read_robot_state,
                                      refuse_undeclared_parameters, undeclared_overrides,
@@ -111,8 +115,9 @@ class ControllerNode(Node):
         self.incompatible_qos_events = 0
         self.refused_messages = 0
         # Timer mode's faults, in ~/status and on /diagnostics.
-        self.counters = {'refused_states': 0, 'out_of_order_states': 0, 'stale_ticks': 0, 'future_ticks': 0,
-                         'missed_ticks': 0, 'clock_faults': 0, 'non_finite_commands': 0}
+        self.counters = {'refused_states': 0, 'out_of_order_states': 0, 'future_states': 0, 'unsafe_states': 0,
+                         'stale_ticks': 0, 'future_ticks': 0, 'missed_ticks': 0, 'clock_faults': 0,
+                         'non_finite_commands': 0, 'clamped_commands': 0}
         self._declare_parameters()
         values = proposed_values(self, ())
         # Real time against a busy core: the process's priority and cores, refused at start if the OS will not.
@@ -132,6 +137,8 @@ class ControllerNode(Node):
         values = proposed_values(self, ())
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
+        self.limits = self._robot_limits(values) if self.sampling == 'timer' else None
+        self._set_time_bounds(values)
         self.reference: Reference | None = None
         self.reference_gravity: np.ndarray | None = None  # Ĝ(q^d) at each reference sample, for PD + gravity
         gains = effective_gains(law, values, self.model, None, given_gains(values, self.joints))
@@ -185,6 +192,11 @@ class ControllerNode(Node):
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         self.status_service = self.create_service(Trigger, '~/status', self._on_status)
         self.get_logger().info(self._describe())
+        unbounded = [] if self.limits is None else [joint for joint, bound in zip(self.joints, self.limits.velocity)
+                                                    if bound == math.inf]
+        if unbounded:
+            self.get_logger().warning(f'the URDF gives no velocity limit > 0 for {unbounded}: their states are not '
+                                      'checked for velocity, nor for moves too fast between states')
 
     def _declare_parameters(self) -> None:
         double_array = Parameter.Type.DOUBLE_ARRAY
@@ -220,6 +232,27 @@ class ControllerNode(Node):
                                                        'forward_command_controller takes them', read_only=True)),
             ('command_topic', EFFORT_COMMAND_TOPIC, descriptor('the topic of the effort commands (a robot\'s: '
                                                                '/<controller>/commands)', read_only=True)),
+            ('clamp_efforts', True, descriptor('sampling timer: clamp each effort to its joint\'s limit '
+                                               '(effort_limits, else the URDF\'s <limit effort>), counted and '
+                                               'logged; false publishes the law\'s efforts as they are')),
+            ('effort_limits', double_array, descriptor('sampling timer: the largest |effort| of each joint, N m or '
+                                                       'N, in joint order, each finite and > 0 (unset: the '
+                                                       'URDF\'s <limit effort>)')),
+            ('position_margin', 0.1, descriptor('sampling timer: a state with a position beyond its joint\'s URDF '
+                                                'limits by more than this (rad or m; continuous joints have none) '
+                                                'is refused, as is one that moved since the state held by more '
+                                                'than the velocity bound allows plus this', floating=(0.0, 1e3))),
+            ('velocity_limit_factor', 2.0, descriptor('sampling timer: the velocity bound is this times the '
+                                                      'URDF\'s <limit velocity>; a state beyond it is refused',
+                                                      floating=(1.0, 1e6))),
+            ('max_state_lead', 0.1, descriptor('sampling timer: a state stamped more than this many s ahead of '
+                                               'the node\'s clock is refused, and the state held is dropped once '
+                                               'it is that far ahead (the clock went back)',
+                                               floating=(0.0, 3600.0))),
+            ('max_clock_jump', 0.5, descriptor('sampling timer: ticks missed within this many s are skipped; when '
+                                               'the node\'s clock jumps further, ahead or back, between two ticks, '
+                                               'the motion goes on from the next sample (re-anchored)',
+                                               floating=(0.0, 3600.0))),
             *scheduling_declarations(),
         ]
         for name, default, described in declared:
@@ -277,6 +310,38 @@ class ControllerNode(Node):
             return [*parameters, *extra]
         return parameters
 
+    def _robot_limits(self, values: dict) -> RobotLimits:
+        """The bounds of robot mode from the URDF and the parameters; ControllerError naming the joint if the
+        efforts are to be clamped and a joint has no limit to clamp them to."""
+        given = values['effort_limits']
+        effort = None
+        if values['clamp_efforts'] and given is not None and len(given):
+            if len(given) != len(self.joints):
+                raise ControllerError(f'effort_limits has {len(given)} values for the {len(self.joints)} joints '
+                                      f'{self.joints}: give one per joint, in that order')
+            effort = np.array(given, dtype=float)
+            bad = {joint: value for joint, value in zip(self.joints, given) if not 0 < value < math.inf}
+            if bad:
+                raise ControllerError(f'effort_limits must be finite and > 0 for each joint: got {bad} '
+                                      '(clamp_efforts:=false publishes the efforts unclamped)')
+        elif values['clamp_efforts']:
+            effort = self.model.effort_limit
+            bad = {joint: value for joint, value in zip(self.joints, effort.tolist()) if not 0 < value < math.inf}
+            if bad:
+                raise ControllerError(f'URDF {self.model.urdf_path} gives no effort limit > 0 to clamp the efforts '
+                                      f'of {sorted(bad)} to (<limit effort>: {bad}): give effort_limits, one per '
+                                      f'joint of {self.joints}, or clamp_efforts:=false')
+        units = tuple('m' if prismatic else 'rad' for prismatic in self.model.prismatic)
+        # A <limit velocity="0"> is how some URDFs say "not given": no bound rather than every moving state refused.
+        velocity = np.where(self.model.velocity_limit > 0, values['velocity_limit_factor'] * self.model.velocity_limit,
+                            np.inf)
+        return RobotLimits(tuple(self.joints), self.model.lower, self.model.upper, values['position_margin'],
+                           velocity, effort, units)
+
+    def _set_time_bounds(self, values: dict) -> None:
+        self.max_state_lead = round(values['max_state_lead'] * 1e9)  # ns, as the stamps
+        self.max_clock_jump = round(values['max_clock_jump'] * 1e9)
+
     def _friction(self, values: dict) -> tuple:
         return tuple(checked_friction(name, values[name] if values[name] is not None and len(values[name]) else None,
                                       self.model.dof) for name in ('viscous_friction', 'coulomb_friction'))
@@ -292,6 +357,11 @@ class ControllerNode(Node):
         if self.sampling == 'timer' and values['period'] != self.period:
             return SetParametersResult(successful=False, reason=f'period is the timer\'s in timer mode: fixed at '
                                                                 f'{self.period} s while the node runs')
+        if self.sampling == 'timer':
+            try:
+                self._robot_limits(values)
+            except ControllerError as error:
+                return SetParametersResult(successful=False, reason=str(error))
         refused = self.scheduling.refusal(values)  # last: applied once the rest is valid, nothing changed if refused
         return SetParametersResult(successful=refused is None, reason=refused or '')
 
@@ -299,6 +369,9 @@ class ControllerNode(Node):
         values = proposed_values(self, ())
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
+        if self.sampling == 'timer':
+            self.limits = self._robot_limits(values)
+        self._set_time_bounds(values)
         self._set_gains(values)
         self.controller.law = make_law(self.law_name, self.chain, self.controller.law.kp, self.controller.law.kv,
                                        *self._friction(values))
@@ -321,9 +394,14 @@ class ControllerNode(Node):
     def _describe(self) -> str:
         law = self.controller.law
         gains = dict(zip(self.joints, zip(np.round(law.kp, 6).tolist(), np.round(law.kv, 6).tolist())))
-        return (f'{self.law_name}: (kp, kv) by joint {gains}, delay {self.controller.delay} sample(s), '
-                f'period {self.period} s, sampling {self.sampling}, commands as {self.command_type} on '
-                f"{self.command_publisher.topic_name}")
+        described = (f'{self.law_name}: (kp, kv) by joint {gains}, delay {self.controller.delay} sample(s), '
+                     f'period {self.period} s, sampling {self.sampling}, commands as {self.command_type} on '
+                     f"{self.command_publisher.topic_name}")
+        if self.limits is None:
+            return described
+        clamp = ('NOT clamped (clamp_efforts is false)' if self.limits.effort is None else
+                 f'clamped to {dict(zip(self.joints, self.limits.effort.tolist()))}')
+        return f'{described}, efforts {clamp}'
 
     def _incompatible_qos(self, event) -> None:
         self.incompatible_qos_events += 1
@@ -346,11 +424,13 @@ class ControllerNode(Node):
     def _on_reset(self, request, response):
         """Clear the delay buffer; the reply (JSON, as ~/status gives) says what the next episode will run with.
 
-        In timer mode the motion starts again from its start at the next tick with a state.
+        In timer mode the state held is forgotten too: the motion starts again from its start at the next tick
+        with a fresh state, whatever stamps came before.
         """
         self.controller.reset()
         self.last_sample = None
         self.waiting.clear()
+        self.latest_state = None
         self.start_time = self.tick_sample = None
         self.configuration += 1
         return self._on_status(request, response)
@@ -427,30 +507,62 @@ class ControllerNode(Node):
     # sampling: timer ---------------------------------------------------------------------------
 
     def _on_robot_state(self, msg: JointState) -> None:
-        """Keep the latest state of our joints (others in the message ignored); refuse one that cannot be used."""
+        """Keep the latest state of our joints (others in the message ignored); refuse one that cannot be used:
+        malformed, stamped before the state held or too far ahead of the node's clock, or beyond the robot's
+        limits (`RobotLimits.refusal`). A refused state is never held: the ticks go on with the state before."""
         try:
             state = read_robot_state(msg, self.joints)
         except MessageError as error:
-            self.refused_messages += 1
-            self.counters['refused_states'] += 1
-            self.get_logger().error(f'refused a state ({self.counters["refused_states"]} so far): {error}',
-                                    throttle_duration_sec=LOG_EVERY)
+            self._refuse('refused_states', f'refused a state ({self.counters["refused_states"] + 1} so far): {error}')
+            return
+        now = self.get_clock().now().nanoseconds
+        self._drop_state_ahead(now)
+        # Before the node's clock has a time (use_sim_time, no /clock yet) nothing is ahead of it: the tick judges.
+        if now and state.stamp - now > self.max_state_lead:
+            self._refuse('future_states', f'refused a state stamped {state.stamp * 1e-9:.9f} s: more than '
+                                          f'max_state_lead = {self.max_state_lead * 1e-9:g} s ahead of the node\'s '
+                                          f'clock, {now * 1e-9:.9f} s ({self.counters["future_states"] + 1} so far)')
             return
         if self.latest_state is not None and state.stamp < self.latest_state.stamp:
-            self.refused_messages += 1
-            self.counters['out_of_order_states'] += 1
-            self.get_logger().error(f'refused a state stamped {state.stamp * 1e-9:.9f} s: before the latest one, '
-                                    f'{self.latest_state.stamp * 1e-9:.9f} s '
-                                    f'({self.counters["out_of_order_states"]} so far)',
-                                    throttle_duration_sec=LOG_EVERY)
+            self._refuse('out_of_order_states', f'refused a state stamped {state.stamp * 1e-9:.9f} s: before the '
+                                                f'latest one, {self.latest_state.stamp * 1e-9:.9f} s '
+                                                f'({self.counters["out_of_order_states"] + 1} so far)')
+            return
+        unsafe = self.limits.refusal(state, self.latest_state)
+        if unsafe is not None:
+            self._refuse('unsafe_states', f'refused a state stamped {state.stamp * 1e-9:.9f} s, no command from it: '
+                                          f'{unsafe} ({self.counters["unsafe_states"] + 1} so far)')
             return
         self.latest_state = state
 
+    def _refuse(self, counter: str, message: str) -> None:
+        self.refused_messages += 1
+        self.counters[counter] += 1
+        self.get_logger().error(message, throttle_duration_sec=LOG_EVERY)
+
+    def _drop_state_ahead(self, now: int) -> None:
+        """Forget the state held once it is more than max_state_lead ahead of the node's clock (which went back):
+        held, it would refuse every later state as out of order until the clock caught up with its stamp."""
+        held = self.latest_state
+        if held is not None and now and held.stamp - now > self.max_state_lead:
+            self.latest_state = None
+            self.counters['future_states'] += 1
+            self.get_logger().warning(f'dropped the state held, stamped {held.stamp * 1e-9:.9f} s: more than '
+                                      f'max_state_lead = {self.max_state_lead * 1e-9:g} s ahead of the node\'s '
+                                      f'clock, {now * 1e-9:.9f} s', throttle_duration_sec=LOG_EVERY)
+
     def _on_tick(self) -> None:
         """One sample: the command from the latest state and the motion at t_n, n counted from the first tick
-        with a fresh state. A state older than one period (or stamped more than one ahead) sends nothing."""
+        with a fresh state. A state older than one period (or stamped more than one ahead) sends nothing.
+
+        Between two ticks the clock moves by one period, late ticks skipped (counted as missed); when it jumps
+        further than max_clock_jump, ahead or back, the motion is re-anchored: it goes on from the next sample,
+        neither skipping to its end nor waiting for the clock to come back. A smaller step back sends nothing
+        until the clock passes the last sample again.
+        """
         now = self.get_clock().now().nanoseconds
         self.ticks += 1
+        self._drop_state_ahead(now)
         state = self.latest_state
         if state is None:
             return
@@ -465,24 +577,46 @@ class ControllerNode(Node):
             self.controller.reset()
             self.get_logger().info(f'motion starts: sample 0 at {now * 1e-9:.9f} s on the node\'s clock')
         n = round((now - self.start_time) / period)
-        if self.tick_sample is not None and n <= self.tick_sample:
-            self.counters['clock_faults'] += 1
-            self.get_logger().error(f'the clock went back to sample {n} (sample {self.tick_sample} came already): '
-                                    'no command; ~/reset starts the motion again', throttle_duration_sec=LOG_EVERY)
-            return
-        if self.tick_sample is not None and n > self.tick_sample + 1:
-            self.counters['missed_ticks'] += n - self.tick_sample - 1
+        if self.tick_sample is not None:
+            jump = (n - self.tick_sample - 1) * period  # how far the clock moved beyond one period, ns
+            if abs(jump) > self.max_clock_jump:
+                self.counters['clock_faults'] += 1
+                n = self.tick_sample + 1
+                self.start_time = now - n * period
+                self.get_logger().warning(f'the node\'s clock jumped {"back" if jump < 0 else "ahead"} by '
+                                          f'{abs(jump) * 1e-9:.9f} s, more than max_clock_jump = '
+                                          f'{self.max_clock_jump * 1e-9:g} s: the motion goes on from sample {n}',
+                                          throttle_duration_sec=LOG_EVERY)
+            elif n <= self.tick_sample:
+                self.counters['clock_faults'] += 1
+                self.get_logger().error(f'the clock went back to sample {n} (sample {self.tick_sample} came '
+                                        'already): no command until it passes it again',
+                                        throttle_duration_sec=LOG_EVERY)
+                return
+            elif n > self.tick_sample + 1:
+                self.counters['missed_ticks'] += n - self.tick_sample - 1
         self.tick_sample = n
         if not fresh:
             self._stale(age, f'no command for sample {n}')
         else:
             torque = self._torque(n, state.q, state.v)
             if torque is not None:
-                self._publish(torque, now * 1e-9)
+                self._publish(self._clamped(n, torque), now * 1e-9)
         if n == len(self.reference.times) - 1:
             self.get_logger().info(f'motion done at sample {n}: holding the goal; {json.dumps(self.counters)}')
         if n % max(1, round(1.0 / self.period)) == 0:
             self._report(n)
+
+    def _clamped(self, n: int, torque: np.ndarray) -> np.ndarray:
+        """The law's efforts within the limits (clamp_efforts); a clamp counted and logged."""
+        clamped, beyond = self.limits.clamped(torque)
+        if beyond:
+            self.counters['clamped_commands'] += 1
+            self.get_logger().warning(f'sample {n}: clamped the efforts of {beyond} to their limits (the law gave '
+                                      f'{torque.tolist()}, sent {clamped.tolist()}; '
+                                      f'{self.counters["clamped_commands"]} clamped so far)',
+                                      throttle_duration_sec=LOG_EVERY)
+        return clamped
 
     def _stale(self, age: int, consequence: str) -> None:
         """A tick whose latest state is more than one period old (or ahead of the node's clock): counted, logged."""

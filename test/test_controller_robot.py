@@ -5,6 +5,7 @@ Time is simulated: the test publishes /clock, and each tick comes from a /clock 
 command answers is known exactly; nothing here depends on how fast the machine is.
 """
 
+import math
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
 
 from ddarm.control.laws import Measurement, ReferencePoint, SampledController, make_law
 from ddarm.motion.files import load_motion
@@ -75,12 +77,14 @@ class Robot:
     def tick(self, ns: int) -> None:
         """Advance the controller's clock to `ns` (a later sample instant): its timer fires once."""
         ticks = self.controller.ticks
+        self.set_clock(ns)
+        self.spin_until(lambda: self.controller.ticks == ticks + 1)
 
+    def set_clock(self, ns: int) -> None:
         def send():
             self.clock.publish(Clock(clock=stamp(ns)))
         send()
         self.spin_until(lambda: self.controller.get_clock().now().nanoseconds == ns, send)
-        self.spin_until(lambda: self.controller.ticks == ticks + 1)
 
     def wait_for_commands(self, count: int) -> None:
         self.spin_until(lambda: len(self.commands) >= count)
@@ -289,4 +293,250 @@ def test_the_period_is_fixed_in_timer_mode(ros_context):
         assert not result.successful and 'fixed' in result.reason
         assert node.set_parameters([rclpy.parameter.Parameter('compute_delay_steps', value=2)])[0].successful
     finally:
+        node.destroy_node()
+
+
+# The safety layer of robot mode: the UR5's <limit effort> (N m) and <limit velocity> (rad/s).
+UR5_EFFORT = np.array([150.0, 150.0, 150.0, 28.0, 28.0, 28.0])
+FAR_FUTURE = (2**31 - 1) * 1_000_000_000  # ns: the largest stamp a builtin_interfaces/Time holds
+
+
+def refuse(robot, msg, counter):
+    """Publish a state the controller must refuse: wait until `counter` counts it."""
+    before = robot.controller.counters[counter]
+    robot.states.publish(msg)
+    robot.spin_until(lambda: robot.controller.counters[counter] > before, lambda: robot.states.publish(msg))
+
+
+def law_at(law, file, n, q, v):
+    q_ref, v_ref, a_ref = file.motion.sample(n * PERIOD * 1e-9)
+    return law.torque(Measurement(q, v, q_ref, v_ref), ReferencePoint(q_ref, v_ref, a_ref))
+
+
+def ur5_law(file, kp, kv):
+    return make_law('computed_torque', chain_from_model(Arm.from_urdf(URDF, None, file.joint_names).model), kp, kv)
+
+
+@pytest.mark.parametrize('ahead', [PERIOD * 11, 60 * 10**9, FAR_FUTURE - START])
+def test_a_state_stamped_ahead_of_the_clock_is_refused_and_the_next_sane_one_commands(ros_context, ahead):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0, np.zeros(6)
+        robot.tick(START)
+        refuse(robot, robot.state(START + ahead, q, v, joints), 'future_states')
+        assert node.latest_state is None
+        robot.send_state(robot.state(START + PERIOD, q, v, joints))
+        robot.tick(START + PERIOD)
+        robot.wait_for_commands(1)
+        np.testing.assert_allclose(robot.commands[0].data, law_at(ur5_law(file, [225.0] * 6, [30.0] * 6), file,
+                                                                  0, q, v), rtol=1e-12, atol=1e-9)
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+def test_after_the_clock_goes_back_the_state_held_is_dropped_and_the_motion_goes_on(ros_context):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0 + 0.01, np.zeros(6)
+        for n in range(2):
+            robot.send_state(robot.state(START + n * PERIOD, q, v, joints))
+            robot.tick(START + n * PERIOD)
+        robot.wait_for_commands(2)
+        back = START - 3_000_000_000  # a simulation restarted: /clock and the states 3 s back
+        robot.set_clock(back)  # no tick: after a jump back, rcl's timer counts its period from there
+        robot.tick(back + PERIOD)
+        assert node.latest_state is None and node.counters['future_states'] == 1
+        robot.send_state(robot.state(back + 2 * PERIOD, q, v, joints))
+        robot.tick(back + 2 * PERIOD)
+        robot.wait_for_commands(3)
+        assert node.tick_sample == 2 and node.counters['clock_faults'] == 1 and node.counters['missed_ticks'] == 0
+        np.testing.assert_allclose(robot.commands[2].data, law_at(ur5_law(file, [225.0] * 6, [30.0] * 6), file,
+                                                                  2, q, v), rtol=1e-12, atol=1e-9)
+        assert node.counters['out_of_order_states'] == 0
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+def test_a_clock_jump_ahead_beyond_the_bound_re_anchors_and_one_within_it_skips(ros_context):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0, np.zeros(6)
+        for now in (START, START + PERIOD):
+            robot.send_state(robot.state(now, q, v, joints))
+            robot.tick(now)
+        later = START + 10 * 10**9
+        robot.tick(later)  # 10 s ahead: sample 2, not sample 1000 (the goal); the state held is stale
+        assert node.tick_sample == 2 and node.counters['clock_faults'] == 1 and node.counters['stale_ticks'] == 1
+        for now in (later + PERIOD, later + 4 * PERIOD):  # then 3 periods: sample 6, 2 ticks missed
+            robot.send_state(robot.state(now, q, v, joints))
+            robot.tick(now)
+        robot.wait_for_commands(4)
+        assert node.tick_sample == 6 and node.counters['clock_faults'] == 1 and node.counters['missed_ticks'] == 2
+        law = ur5_law(file, [225.0] * 6, [30.0] * 6)
+        np.testing.assert_allclose([msg.data for msg in robot.commands], [law_at(law, file, n, q, v)
+                                                                          for n in (0, 1, 3, 6)],
+                                   rtol=1e-12, atol=1e-9)
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('joint, position, velocity', [
+    (1, 1e300, 0.0),  # far outside shoulder_lift's ±2π
+    (2, math.pi + 0.11, 0.0),  # just beyond the elbow's ±π by more than the margin of 0.1 rad
+    (3, -1.9708 + 1.0, 0.0),  # 1 rad in one period: no velocity within 2 × 3.2 rad/s moves that far
+    (0, -0.5, 50.0),  # 50 rad/s: beyond 2 × 3.15 rad/s
+    (4, -1.5708, -1e300),
+])
+def test_a_state_beyond_the_limits_is_refused_and_sends_no_command(ros_context, capfd, joint, position, velocity):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0.copy(), np.zeros(6)
+        robot.send_state(robot.state(START, q, v, joints))
+        robot.tick(START)
+        robot.wait_for_commands(1)
+        bad_q, bad_v = q.copy(), v.copy()
+        bad_q[joint], bad_v[joint] = position, velocity
+        capfd.readouterr()
+        refuse(robot, robot.state(START + PERIOD, bad_q, bad_v, joints), 'unsafe_states')
+        assert node.latest_state.stamp == START
+        logged = capfd.readouterr().err
+        assert f'refused a state stamped 5.010000000 s, no command from it: {joints[joint]} ' in logged, logged
+        robot.tick(START + 2 * PERIOD)  # the state held is two periods old: nothing for this sample
+        assert node.counters['stale_ticks'] == 1 and len(robot.commands) == 1
+        robot.send_state(robot.state(START + 3 * PERIOD, q, v, joints))
+        robot.tick(START + 3 * PERIOD)
+        robot.wait_for_commands(2)
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+def test_a_move_refused_as_too_fast_is_taken_once_the_time_since_allows_it(ros_context):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0.copy(), np.zeros(6)
+        robot.send_state(robot.state(START, q, v, joints))
+        moved = q + np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+        refuse(robot, robot.state(START + PERIOD, moved, v, joints), 'unsafe_states')
+        robot.send_state(robot.state(START + 20 * PERIOD, moved, v, joints))  # 0.2 s: 2 × 3.2 × 0.2 + 0.1 > 1
+        assert node.latest_state.stamp == START + 20 * PERIOD and node.counters['unsafe_states'] == 1
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+def test_a_continuous_joint_has_no_position_limit(ros_context, tmp_path):
+    urdf = tmp_path / 'ur5-continuous-pan.urdf'
+    text = URDF.read_text()
+    pan = '<joint name="shoulder_pan_joint" type="revolute">'
+    assert pan in text
+    urdf.write_text(text.replace(pan, '<joint name="shoulder_pan_joint" type="continuous">'))
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0,
+                           urdf=str(urdf))
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q = file.motion.q0 + np.array([50.0, 0, 0, 0, 0, 0])  # 8 turns on: a continuous joint's angle
+        robot.send_state(robot.state(START, q, np.zeros(6), joints))
+        robot.tick(START)
+        robot.wait_for_commands(1)
+        assert np.all(np.abs(robot.commands[0].data) <= UR5_EFFORT)
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('extra, limits', [
+    ({}, UR5_EFFORT),
+    ({'effort_limits': [10.0, 20.0, 30.0, 4.0, 5.0, 6.0]}, np.array([10.0, 20.0, 30.0, 4.0, 5.0, 6.0])),
+    ({'clamp_efforts': False}, None),
+])
+def test_efforts_are_clamped_to_the_urdf_limits_unless_told_otherwise(ros_context, extra, limits):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    kp, kv = [2500.0] * 6, [100.0] * 6
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', kp, kv, 0, **extra)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0 + 0.5, np.zeros(6)  # half a radian off on every joint, within its limits
+        robot.send_state(robot.state(START, q, v, joints))
+        robot.tick(START)
+        robot.wait_for_commands(1)
+        law = law_at(ur5_law(file, kp, kv), file, 0, q, v)
+        assert np.any(np.abs(law) > UR5_EFFORT)
+        wanted = law if limits is None else np.clip(law, -limits, limits)
+        np.testing.assert_allclose(robot.commands[0].data, wanted, rtol=1e-12, atol=1e-9)
+        assert node.counters['clamped_commands'] == (0 if limits is None else 1)
+    finally:
+        robot.close()
+        node.destroy_node()
+
+
+def test_effort_limits_that_cannot_be_clamped_to_are_refused_naming_the_joint(ros_context, tmp_path):
+    with pytest.raises(ControllerError, match=r'effort_limits has 2 values for the 6 joints'):
+        controller_node(ros_context, 'computed_torque', 'float64_multi_array', [1.0] * 6, [1.0] * 6, 0,
+                        effort_limits=[1.0, 2.0])
+    with pytest.raises(ControllerError, match=r"effort_limits must be finite and > 0 for each joint: got "
+                                              r"\{'elbow_joint': 0.0\}"):
+        controller_node(ros_context, 'computed_torque', 'float64_multi_array', [1.0] * 6, [1.0] * 6, 0,
+                        effort_limits=[1.0, 1.0, 0.0, 1.0, 1.0, 1.0])
+    urdf = tmp_path / 'ur5-wrists-of-no-effort.urdf'
+    limit = '<limit effort="28.0" lower="-6.28318530718" upper="6.28318530718" velocity="3.2" />'
+    assert URDF.read_text().count(limit) == 3
+    urdf.write_text(URDF.read_text().replace(limit, limit.replace('28.0', '0.0')))
+    with pytest.raises(ControllerError, match=r"gives no effort limit > 0 to clamp the efforts of "
+                                              r"\['wrist_1_joint', 'wrist_2_joint', 'wrist_3_joint'\]"):
+        controller_node(ros_context, 'computed_torque', 'float64_multi_array', [1.0] * 6, [1.0] * 6, 0,
+                        urdf=str(urdf))
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [1.0] * 6, [1.0] * 6, 0,
+                           urdf=str(urdf), effort_limits=[150.0] * 3 + [28.0] * 3)
+    try:
+        result = node.set_parameters([rclpy.parameter.Parameter('effort_limits', value=[-1.0] * 6)])[0]
+        assert not result.successful and "'shoulder_pan_joint': -1.0" in result.reason
+        result = node.set_parameters([rclpy.parameter.Parameter('effort_limits', value=[5.0] * 6)])[0]
+        assert result.successful and node.limits.effort.tolist() == [5.0] * 6
+    finally:
+        node.destroy_node()
+
+
+def test_reset_forgets_the_state_held(ros_context):
+    file = load_motion(MOTION)
+    joints = list(file.joint_names)
+    node = controller_node(ros_context, 'computed_torque', 'float64_multi_array', [225.0] * 6, [30.0] * 6, 0)
+    robot = Robot(ros_context, node, 'float64_multi_array')
+    try:
+        q, v = file.motion.q0, np.zeros(6)
+        for n in range(2):
+            robot.send_state(robot.state(START + n * PERIOD, q, v, joints))
+            robot.tick(START + n * PERIOD)
+        robot.wait_for_commands(2)
+        node._on_reset(Trigger.Request(), Trigger.Response())
+        robot.tick(START + 2 * PERIOD)  # the state of sample 1 is fresh still, but forgotten: no start
+        assert len(robot.commands) == 2 and node.start_time is None
+        robot.send_state(robot.state(START, q, v, joints))  # before the one forgotten: taken
+        robot.send_state(robot.state(START + 3 * PERIOD, q, v, joints))
+        robot.tick(START + 3 * PERIOD)
+        robot.wait_for_commands(3)
+        assert node.tick_sample == 0 and node.counters['out_of_order_states'] == 0
+    finally:
+        robot.close()
         node.destroy_node()

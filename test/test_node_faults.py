@@ -1,8 +1,10 @@
 """The plant and controller nodes under faults of their own making or of a peer's: they keep answering, and say what."""
 
 import re
+import signal
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,11 +25,13 @@ from ddarm.ros.interface import DIAGNOSTICS_QOS, SAMPLE_QOS, joint_state_msg, sa
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
 from graph_helpers import InProcessGraph, overrides
+from process_helpers import start_node, wait_for
 from test_graph_equivalence import assert_same_episode
 
 JOINTS = ['joint1', 'joint2', 'joint3']
 SPEC = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3)
 FAR_FUTURE = 2**31 - 1  # s: the largest stamp a builtin_interfaces/Time holds
+UR5 = Path(__file__).resolve().parent.parent / 'config' / 'arms' / 'ur5'
 
 
 def spin_until(executor, condition, timeout=30.0):
@@ -216,3 +220,25 @@ def test_a_file_that_is_no_urdf_or_cannot_be_read_is_refused_naming_it(tmp_path)
             Arm.from_urdf(unopenable)
     with pytest.raises(ModelError, match=re.escape(f'URDF {tmp_path / "nothing.urdf"} does not exist')):
         Arm.from_urdf(tmp_path / 'nothing.urdf')
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_timer_mode_controller_ends_without_a_fatal_log(tmp_path, signum):
+    """The stop lands in a callback (the 100 Hz tick, the watchdog) more often than not; the executor must not
+    see it there: rclpy's EventsExecutor logs any exception out of a callback as FATAL with a stack."""
+    log = tmp_path / 'controller.log'
+    process = start_node(['ddarm_control.node', 'computed_torque', '--ros-args', '-p', 'sampling:=timer',
+                          '-p', 'command_type:=float64_multi_array', '-p', f'motion:={UR5 / "ur5-motion.yaml"}',
+                          '-p', f'urdf:={UR5 / "ur5.urdf"}', '-p', 'omega:=10.0'], log)
+    try:
+        # The watchdog's line comes from a timer callback: the node spins, its tick firing at 100 Hz.
+        wait_for(lambda: 'waiting for a state' in log.read_text() or process.poll() is not None, 120,
+                 'the controller spinning')
+        process.send_signal(signum)
+        assert process.wait(timeout=30) == 0, log.read_text()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    text = log.read_text()
+    assert 'FATAL' not in text and 'Traceback' not in text and 'Error occurred at' not in text, text

@@ -110,7 +110,7 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
-    from ddarm.interrupts import Interrupted, stop_on_signals
+    from ddarm.interrupts import Interrupted, critical_section, stop_on_signals
     from ddarm.ros.executors import node_executor
 
     executors = []
@@ -128,7 +128,10 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
             # Bounded waits, not rclpy.spin's endless one: between them the process is back in Python, where
             # its own SIGINT and SIGTERM handlers run (a node with no timer slept through rclpy's in rcl_wait).
             while node.context.ok():
-                executor.spin_once(timeout_sec=SIGNAL_CHECK_PERIOD_S)
+                # A stop that comes while a callback runs is raised once spin_once returns, here: raised in the
+                # callback, rclpy's EventsExecutor logs it as FATAL with a stack before passing it on.
+                with critical_section():
+                    executor.spin_once(timeout_sec=SIGNAL_CHECK_PERIOD_S)
         except (*refusals, ParameterException, ParameterFileError) as error:
             print(f'{name}: refused to start: {error}', flush=True)
             return REFUSED

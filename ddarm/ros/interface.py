@@ -140,6 +140,61 @@ def read_robot_state(msg: JointState, joints: list[str], what: str = 'joint stat
     return RobotState(stamp, field(msg.position, 'position'), field(msg.velocity, 'velocity'))
 
 
+@dataclass(frozen=True)
+class RobotLimits:
+    """What a controller in robot mode (sampling timer) takes from a robot and sends it, by joint: positions
+    within the URDF's limits widened by `margin`, velocities within `velocity` (a multiple of the URDF's limits),
+    moves between states no faster than that, and efforts clamped to `effort`. inf: no bound; effort None: no
+    clamping."""
+
+    joints: tuple[str, ...]
+    lower: np.ndarray  # the URDF's <limit lower> (-inf for a continuous joint or none)
+    upper: np.ndarray
+    margin: float  # rad or m
+    velocity: np.ndarray  # rad/s or m/s
+    effort: np.ndarray | None  # N m or N
+    units: tuple[str, ...]  # 'rad' or 'm' by joint
+
+    def refusal(self, state: RobotState, previous: RobotState | None) -> str | None:
+        """Why `state` is no state a robot within its limits can be in (None if it can), naming each joint: a
+        position beyond its joint's limits by more than the margin, a velocity beyond the bound, or a move since
+        `previous` (the state held) that no velocity within the bound makes in the time between their stamps,
+        margin added."""
+        q, v = state.q, state.v
+        outside = np.flatnonzero((q < self.lower - self.margin) | (q > self.upper + self.margin))
+        if outside.size:
+            return '; '.join(f'{self.joints[j]} at {q[j].item()!r} {self.units[j]} is outside its URDF limits '
+                             f'[{self.lower[j].item()!r}, {self.upper[j].item()!r}] by more than position_margin '
+                             f'= {self.margin!r}' for j in outside)
+        fast = np.flatnonzero(np.abs(v) > self.velocity)
+        if fast.size:
+            return '; '.join(f'{self.joints[j]} moves at {v[j].item()!r} {self.units[j]}/s, beyond the velocity '
+                             f'bound (velocity_limit_factor times its URDF velocity limit) {self.velocity[j].item()!r}'
+                             for j in fast)
+        if previous is None:
+            return None
+        elapsed = abs(state.stamp - previous.stamp) * 1e-9
+        # Positions of any size (a move of inf is refused as one); no velocity bound times no time is no bound.
+        with np.errstate(over='ignore', invalid='ignore'):
+            moved = np.abs(q - previous.q)
+            reach = np.where(np.isfinite(self.velocity), self.velocity * elapsed, np.inf) + self.margin
+        jumped = np.flatnonzero(moved > reach)
+        if jumped.size:
+            return '; '.join(f'{self.joints[j]} moved {moved[j].item()!r} {self.units[j]} in {elapsed:.9f} s since '
+                             f'the state held: more than the {reach[j].item()!r} the velocity bound allows, '
+                             f'position_margin added' for j in jumped)
+        return None
+
+    def clamped(self, effort: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """`effort` within the limits, and the joints whose effort was beyond them."""
+        if self.effort is None:
+            return effort, []
+        beyond = np.abs(effort) > self.effort
+        if not beyond.any():
+            return effort, []
+        return np.clip(effort, -self.effort, self.effort), [self.joints[j] for j in np.flatnonzero(beyond)]
+
+
 def joint_state_msg(joints: list[str], t: float, q: np.ndarray | None = None, v: np.ndarray | None = None,
                     effort: np.ndarray | None = None) -> JointState:
     msg = JointState()
