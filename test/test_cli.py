@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -74,3 +75,58 @@ def test_the_console_script_is_installed():
     done = subprocess.run([str(executable), 'episode', '--controller', 'computed_torque', '--omega', '15',
                            '--json'], capture_output=True, text=True, check=True)
     assert json.loads(done.stdout)['I1'] > 0
+
+
+ROOT = Path(__file__).resolve().parents[1]
+PANDA = ['--urdf', str(ROOT / 'config/arms/panda/panda.urdf'),
+         '--motion', str(ROOT / 'config/arms/panda/panda-motion.yaml')]
+
+
+def stability_warnings(warnings: list[str]) -> list[str]:
+    return [warning for warning in warnings if 'stability boundary' in warning]
+
+
+def test_gains_beyond_the_coupled_loops_boundary_are_warned_naming_the_joints(capsys):
+    """README: PD + gravity on the Panda at ω = 15 (Δ = 0.01 s, d = 0) is unstable, which the ω rule cannot see."""
+    summary = run_json(capsys, '--controller', 'pd_gravity', '--omega', '15', '--delay', '0', *PANDA)
+    [warning] = stability_warnings(summary['warnings'])
+    assert 'panda_joint1' in warning and 'spectral radius' in warning
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '15', '--delay', '0', *PANDA]) == 0
+    assert 'WARNING: the gains lie beyond the stability boundary' in capsys.readouterr().out
+
+
+def test_the_papers_gains_are_not_warned(capsys):
+    for arguments in (['--controller', 'pd_gravity', '--omega', '10', '--delay', '0'],
+                      ['--controller', 'computed_torque', '--omega', '15']):
+        assert stability_warnings(run_json(capsys, *arguments)['warnings']) == []
+
+
+def test_tune_warns_of_starts_and_tuned_gains_beyond_the_boundary(capsys, tmp_path, monkeypatch):
+    import ddarm.cli.tune as tune_command
+    import ddarm.tuning.outputs as outputs
+    import ddarm.tuning.tune as tuning_module
+    from ddarm.episodes.spec import gains_from_omega
+
+    def searched_at(omega):
+        def searched(template, *arguments, **options):
+            kp, kv = gains_from_omega(template, omega)
+            return tuning_module.Tuning(SimpleNamespace(kp=kp, kv=kv, index=1.0, episodes=1), (omega,), [1.0], 1.0,
+                                        {})
+        return searched
+
+    monkeypatch.setattr(tune_command, 'check_through_graph', lambda run, spec, storage: {})
+    monkeypatch.setattr(outputs, 'finish_tuning', lambda run, template, best, tuning, scored, **options: {
+        'agree': True, 'warnings': list(tuning.warnings)})
+    tune = ['tune', '--controller', 'pd_gravity', '--delay', '0', '--index', 'I', '--runs', str(tmp_path), '--json']
+    monkeypatch.setattr(tuning_module, 'tune', searched_at(15.0))
+    assert main([*tune, '--omegas', '15', '--run', 'panda', *PANDA]) == 0
+    captured = capsys.readouterr()
+    [start] = stability_warnings(captured.err.splitlines())
+    assert 'the ω-rule start gains at ω = 15 lie beyond' in start and 'panda_joint1' in start
+    [tuned] = stability_warnings(json.loads(captured.out)['warnings'])
+    assert tuned.startswith('the tuned gains lie beyond') and 'panda_joint1' in tuned
+    monkeypatch.setattr(tuning_module, 'tune', searched_at(10.0))
+    assert main([*tune, '--omegas', '10', '--run', 'paper']) == 0  # the paper's arm and gains
+    captured = capsys.readouterr()
+    assert stability_warnings(captured.err.splitlines()) == []
+    assert stability_warnings(json.loads(captured.out)['warnings']) == []

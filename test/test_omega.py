@@ -69,3 +69,22 @@ def test_the_written_gains_load_into_the_controller_node(capsys, tmp_path):
 def test_bad_omega_options_are_refused(capsys, tmp_path, arguments, problem):
     assert main(['omega', '--controller', 'computed_torque', *arguments, '--runs', str(tmp_path)]) == 2
     assert problem in capsys.readouterr().err
+
+
+def test_a_chosen_omega_beyond_the_coupled_loops_boundary_is_warned(capsys, tmp_path):
+    """The torque conditions pass ω = 17.46 for PD + gravity at d = 0, where the paper's arm, linearised at q_f
+    with its full M, is unstable (its modal boundary is ω = 12.56): held there its errors grow."""
+    assert main(['omega', '--controller', 'pd_gravity', '--delay', '0', '--max-error', '1.0', '--mass-error', '0',
+                 '0.1', '0.1', '--torque-factor', '1.5', '--runs', str(tmp_path), '--run', 'pd', '--json']) == 0
+    captured = capsys.readouterr()
+    chosen = json.loads(captured.out)['omega']
+    assert chosen > 12.56
+    [warning] = [line for line in captured.err.splitlines() if 'stability boundary' in line]
+    assert warning.startswith(f'ddarm omega: WARNING: the gains of the chosen ω = {chosen:.6g}')
+    assert 'joint3' in warning
+    # Computed torque's boundary at d = 1 is ω* = 42.6 (an exact model: the per-joint one): 44.4 passes the torque
+    # conditions here, 30 is below it.
+    for omega_max, warned in (('100', True), ('30', False)):
+        assert main(['omega', '--controller', 'computed_torque', '--max-error', '0.5', '--disturbance', '0', '10',
+                     '0', '--omega-max', omega_max, '--runs', str(tmp_path), '--run', f'ct-{omega_max}']) == 0
+        assert ('stability boundary' in capsys.readouterr().err) == warned

@@ -1,7 +1,9 @@
 """`ddarm stability` and ddarm.control.stability: the exact boundary ωΔ* of the sampled loop, checked against the
 closed form for d = 0, the delayed transition matrix built here, the coupled arm's matrix and simulated episodes."""
 
+import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,10 +11,11 @@ from scipy.linalg import expm
 
 from ddarm.cli.main import main
 from ddarm.control.gains import largest_stable_omega
-from ddarm.control.stability import (StabilityError, boundary_omega, boundary_omega_delta, modal_boundary_omega_delta,
-                                     modal_gains)
+from ddarm.control.stability import (MAX_LOOP_STATES, StabilityError, boundary_omega, boundary_omega_delta,
+                                     growing_modes, modal_boundary_omega_delta, modal_gains, sampled_loop_transition)
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeSpec, episode_motion, model_arm, plant_arm
+from ddarm.episodes.spec import (EpisodeSpec, episode_motion, gains_from_omega, loop_stability_warnings, model_arm,
+                                 plant_arm)
 
 # Just below and above the boundary: far inside the band where a crossing root's |z| - 1 changes sign.
 STEP = 1e-7
@@ -218,6 +221,116 @@ def test_a_missing_arm_for_pd_gravity_is_one_line(capsys, tmp_path):
     assert main(['stability', '--controller', 'pd_gravity', '--urdf', str(tmp_path / 'none.urdf')]) == 2
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and 'none.urdf' in err
+
+
+def random_arm(rng, joints: int) -> np.ndarray:
+    """A mass matrix with large off-diagonal inertia, as a coupled arm has."""
+    factor = rng.normal(size=(joints, joints))
+    return factor @ factor.T + 0.1 * np.eye(joints)
+
+
+@pytest.mark.parametrize('delay', [0, 1, 2, 5])
+def test_the_coupled_loop_is_the_delayed_transition_without_gravity(delay):
+    rng = np.random.default_rng(delay)
+    mass, zero = random_arm(rng, 3), np.zeros((3, 3))
+    kp, kv = np.diag(rng.uniform(50, 500, 3)), np.diag(rng.uniform(5, 50, 3))
+    ours = sampled_loop_transition(mass, zero, zero, kp, kv, 0.01, delay)
+    assert ours.shape == (3 * (delay + 2),) * 2
+    reference = delayed_transition(0.01, delay, np.linalg.solve(mass, np.hstack([kp, kv])))
+    # The same loop: each root of ours is one of the reference's, whose extra states only add roots at 0.
+    for root in np.linalg.eigvals(ours):
+        if abs(root) > 1e-3:
+            assert np.linalg.svd(reference - root * np.eye(len(reference)), compute_uv=False)[-1] < 1e-9
+    assert growing_modes(ours, 3)[0] == pytest.approx(spectral_radius(reference), rel=1e-9)
+
+
+@pytest.mark.parametrize('delay', [0, 1, 3])
+def test_the_coupled_loop_steps_as_the_plant_with_gravity_and_friction_does(delay):
+    """M ẍ + S x + B ẋ = u held over each period, u_n = -(F_p x + F_v ẋ)(t_{n-d}), integrated by solve_ivp."""
+    from scipy.integrate import solve_ivp
+
+    rng = np.random.default_rng(10 + delay)
+    joints, period = 3, 0.01
+    mass = random_arm(rng, joints)
+    stiffness, damping = rng.normal(size=(joints, joints)) * 20, np.diag(rng.uniform(0, 3, joints))
+    position_feedback, velocity_feedback = rng.normal(size=(joints, joints)) * 50, rng.normal(size=(joints, joints))
+    transition = sampled_loop_transition(mass, stiffness, damping, position_feedback, velocity_feedback, period,
+                                         delay)
+    start = rng.normal(size=2 * joints)
+    states = [start]
+    feedback = np.hstack([position_feedback, velocity_feedback])
+    history = [feedback @ start] * (delay + 1)  # y_n for the samples before 0: as the state starts them
+    for n in range(12):
+        held = -history[-1 - delay]
+        x = solve_ivp(lambda t, z: np.concatenate([z[joints:], np.linalg.solve(
+            mass, held - stiffness @ z[:joints] - damping @ z[joints:])]), (0, period), states[-1],
+            rtol=1e-12, atol=1e-14).y[:, -1]
+        states.append(x)
+        history.append(feedback @ x)
+    state = np.concatenate([start] + [feedback @ start] * delay)
+    for n in range(12):
+        state = transition @ state
+        np.testing.assert_allclose(state[:2 * joints], states[n + 1], rtol=1e-8, atol=1e-10)
+
+
+def test_a_loop_too_large_to_solve_is_refused_before_any_matrix():
+    joints = MAX_LOOP_STATES // 10
+    with pytest.raises(StabilityError, match=f'more than {MAX_LOOP_STATES}'):
+        sampled_loop_transition(np.eye(joints), np.zeros((joints, joints)), np.zeros((joints, joints)),
+                                np.eye(joints), np.eye(joints), 0.01, 9)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+PANDA = dict(urdf='config/arms/panda/panda.urdf', motion='config/arms/panda/panda-motion.yaml')
+
+
+def omega_rule_spec(controller: str, omega: float, delay: int, **arm) -> EpisodeSpec:
+    arm = {key: str(ROOT / value) for key, value in arm.items()}
+    spec = EpisodeSpec(controller=controller, kp=(1.0,), kv=(1.0,), delay=delay, **arm)
+    kp, kv = gains_from_omega(spec, omega)
+    return EpisodeSpec(controller=controller, kp=kp, kv=kv, delay=delay, **arm)
+
+
+def test_pd_gravity_on_the_panda_at_omega_15_is_warned_naming_its_coupled_joints():
+    """README: PD + gravity on the Panda at ω = 15, Δ = 0.01 s, d = 0 is unstable (its modal boundary near 3)."""
+    warnings = loop_stability_warnings(omega_rule_spec('pd_gravity', 15.0, 0, **PANDA))
+    assert len(warnings) == 1 and 'stability boundary' in warnings[0] and 'at the goal q_f' in warnings[0]
+    named = warnings[0].split('move mostly ')[1].split(', whose')[0].split(', ')
+    assert named and set(named) <= {f'panda_joint{i}' for i in range(1, 8)} and 'panda_joint1' in named
+
+
+def test_the_papers_gains_on_the_papers_arm_are_not_warned():
+    assert loop_stability_warnings(omega_rule_spec('pd_gravity', 10.0, 0)) == []
+    assert loop_stability_warnings(omega_rule_spec('computed_torque', 15.0, 1)) == []
+
+
+@pytest.mark.parametrize('delay', [0, 1, 2])
+def test_computed_torque_is_warned_just_beyond_the_exact_boundary(delay):
+    """An exact model: n double integrators, up to ∂G/∂q held against the plant's own."""
+    boundary = boundary_omega(0.01, delay, 1.0)
+    assert loop_stability_warnings(omega_rule_spec('computed_torque', 0.99 * boundary, delay)) == []
+    warnings = loop_stability_warnings(omega_rule_spec('computed_torque', 1.01 * boundary, delay))
+    assert len(warnings) == 1 and 'joint' in warnings[0]
+
+
+@pytest.mark.parametrize('delay', [0, 1])
+def test_pd_gravity_is_warned_where_the_episode_held_at_the_goal_grows(tmp_path, delay):
+    """The paper's arm held at q_f after a waypoint move: errors grow just above the boundary the warning uses."""
+    motion = tmp_path / 'hold.yaml'
+    motion.write_text('joint_names: [joint1, joint2, joint3]\nstart: [0.0, 1.0471975511965976, '
+                      '-2.0943951023931953]\npoints:\n  - positions: [1.5707963267948966, 0.0, 0.0]\n'
+                      '    time_from_start: 1.0\n')
+    mass, diagonal = paper_arm_at_the_goal()
+    decoupled = modal_boundary_omega_delta(modal_gains(mass, diagonal), delay, 1.0) / 0.01
+    decay = {}
+    for factor in (0.8, 1.25):
+        spec = dataclasses.replace(omega_rule_spec('pd_gravity', factor * decoupled, delay), motion=str(motion),
+                                   duration=3.0)
+        errors = np.abs(run_episode(spec).scored('errors'))
+        decay[factor] = errors[300].max() / errors[100].max()
+        assert bool(loop_stability_warnings(spec)) == (factor > 1)
+    # Two seconds at the goal after it is reached at t = 1 s: the errors decay below the boundary, not above it.
+    assert decay[0.8] < 0.1 and decay[1.25] > 1
 
 
 def test_the_stability_figure_draws_the_map(tmp_path):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ddarm.control.laws import CONTROLLERS
-from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
+from ddarm.episodes.spec import PERIOD_RANGE, EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
 
@@ -19,6 +19,23 @@ def finite(text: str) -> float:
     if not np.isfinite(value):
         raise argparse.ArgumentTypeError(f'{text!r} is not a finite number')
     return value
+
+
+def number_within(low: float, high: float, unit: str):
+    """An argparse type: a number in [low, high], in `unit`."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f'{text!r} is not in [{low:g}, {high:g}] {unit}')
+        return value
+    return parse
+
+
+# The sampling period Δ of `ddarm stability`, which builds no episode to refuse it (ddarm.episodes.spec's bound).
+period_seconds = number_within(*PERIOD_RANGE, 's')
 
 
 def whole_number(low: int, high: int, unit: str = ''):
@@ -56,7 +73,8 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
                         help="T in s (default: the motion's; the paper's is 1); a bang-bang motion is stretched to "
                              "T, waypoints are held after their last point")
     parser.add_argument('--period', type=finite, default=0.01, metavar='DT',
-                        help='sampling period Δ in s (default 0.01)')
+                        help=f'sampling period Δ in s, within [{PERIOD_RANGE[0]:g}, {PERIOD_RANGE[1]:g}] '
+                             '(default 0.01)')
     if gains:
         choice = parser.add_mutually_exclusive_group(required=True)
         choice.add_argument('--omega', type=finite, metavar='W',

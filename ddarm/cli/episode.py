@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import time
 
 from ddarm.cli.arguments import episode_spec
-from ddarm.cli.output import print_summary
+from ddarm.cli.output import print_json, print_summary
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, check_episode, model_arm
+from ddarm.episodes.spec import EpisodeError, check_episode, loop_stability_warnings, model_arm
 
 
 def episode_scheduling(args: argparse.Namespace):
@@ -38,7 +37,7 @@ def command_episode(args: argparse.Namespace) -> int:
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
     scheduling = episode_scheduling(args)
     spec = episode_spec(args)
-    warnings = list(check_episode(spec).warnings)
+    warnings = list(check_episode(spec).warnings) + loop_stability_warnings(spec)
     started = time.perf_counter()
     if args.ros or args.realtime:
         from ddarm.ros.driver import realtime_warnings  # ROS only when asked for
@@ -56,7 +55,7 @@ def command_episode(args: argparse.Namespace) -> int:
                'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print_summary(summary)
     return 0

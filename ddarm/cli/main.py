@@ -30,8 +30,15 @@ from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse's parser whose refusal is one line, as every other refusal of ddarm's (its usage is in --help)."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog='ddarm', description='Feedback-gain selection for the direct-drive arm (Kowalska).')
     commands = parser.add_subparsers(dest='command', required=True)
     episode = commands.add_parser('episode', help='run one closed-loop episode and print its indices')
@@ -136,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'ddarm {args.command}: {error}', file=sys.stderr)
         return 2
     except OSError as error:  # a path the user gave that the system refuses (permissions, a full disk)
-        print(f'ddarm {args.command}: {error.filename or ""}: {error.strerror or error}', file=sys.stderr)
+        where = f'{error.filename}: ' if error.filename else ''
+        print(f'ddarm {args.command}: {where}{error.strerror or error}', file=sys.stderr)
         return 2
 
 

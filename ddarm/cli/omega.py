@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import shlex
 import sys
 
 import numpy as np
 
 from ddarm.cli.arguments import episode_spec
-from ddarm.cli.output import format_vector
-from ddarm.episodes.spec import EpisodeError, check_episode
+from ddarm.cli.output import format_vector, print_json
+from ddarm.episodes.spec import EpisodeError, check_episode, loop_stability_warnings
 
 
 def command_omega(args: argparse.Namespace) -> int:
@@ -44,20 +43,41 @@ def command_omega(args: argparse.Namespace) -> int:
     choice = omega_procedure(spec, permitted, args.torque_factor, args.omega_step, args.omega_max)
     with run_folder('omega', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
         report = finish_omega(run, spec, plan, choice, args.out)
+    if choice.omega is not None:
+        chosen = dataclasses.replace(spec, kp=tuple(choice.kp), kv=tuple(choice.kv))
+        for warning in loop_stability_warnings(chosen, f'the gains of the chosen ω = {choice.omega:.6g}'):
+            print(f'ddarm omega: WARNING: {warning}', file=sys.stderr)
     if args.json:
-        print(json.dumps(report))
-        return 0
+        print_json(report)
+    else:
+        print_choice(spec, choice, report)
+    if choice.omega is None:
+        print(f'ddarm omega: {no_omega_reason(choice, args.torque_factor)}: no gains written'
+              + (f', {args.out} not written' if args.out else '') + f"; the steps are in {report['run']}",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def no_omega_reason(choice, torque_factor: float) -> str:
+    """Why the raising step kept no ω: what its first step, at ω_min (or one step), broke."""
+    first = choice.steps[0]
+    broken = (['it diverged'] if first.diverged else []) + (
+        [f'max |P| / limit = {first.max_torque_ratio_to_limit:.3g} > 1'] if first.max_torque_ratio_to_limit > 1
+        else []) + ([f'max |P| / max |P_nom| = {first.max_torque_ratio_to_nominal:.3g} > the torque factor '
+                     f'{torque_factor:g}'] if first.max_torque_ratio_to_nominal > torque_factor else [])
+    return f"no ω meets the torque conditions: at the first, ω = {first.omega:.6g}, {' and '.join(broken)}"
+
+
+def print_choice(spec, choice, report: dict) -> None:
     print(f"{spec.controller}: ω_min = {choice.omega_min:.6g} (steady-state errors at ω_min, deg or mm: "
           f"{format_vector(report['steady_state_error_at_omega_min_deg'])})")
     for step in choice.steps:
         print(f'  ω = {step.omega:8.4g}  max |P| / limit = {step.max_torque_ratio_to_limit:.3f}  '
               f'max |P| / max |P_nom| = {step.max_torque_ratio_to_nominal:.3f}  '
               f"{'diverged ' if step.diverged else ''}{'accepted' if step.accepted else 'rejected'}")
-    if choice.omega is None:
-        print('  no ω from ω_min up meets the torque conditions')
-    else:
+    if choice.omega is not None:
         indices = report['indices']
         print(f"  chosen ω = {choice.omega:.6g}: kp = {format_vector(choice.kp)}  kv = {format_vector(choice.kv)}")
         print(f"  I1 (2.5) = {indices['I1']:.6g}   I2 = {indices['I2']:.6g}   I (3.2) = {indices['I']:.6g}")
         print(f"  gains written to {', '.join(report['gains_files'])}")
-    return 0

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
-from ddarm.cli.arguments import absolute_path, add_arm_arguments, whole_number
-from ddarm.cli.output import format_vector
+from ddarm.cli.arguments import absolute_path, add_arm_arguments, period_seconds, whole_number
+from ddarm.cli.output import format_vector, print_json
 from ddarm.control.laws import MAX_DELAY
 from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, modal_gains
+from ddarm.episodes.spec import PERIOD_RANGE
 
 ARM_OPTIONS = ('urdf', 'model_urdf', 'trajectory', 'motion')
 
@@ -67,7 +67,7 @@ def command_stability(args: argparse.Namespace) -> int:
             report['period'] = args.period
         if joint_names is not None:
             report.update(joint_names=joint_names, modes=modes.tolist())
-        print(json.dumps(report))
+        print_json(report)
         return 0
     unit = 'ωΔ*' if args.period is None else f'ωΔ* (ω* in rad/s at Δ = {args.period:g} s)'
     print(f'ddarm stability: {args.controller}, zero-order hold, delay d samples, ω rule with damping ζ: {unit}')
@@ -94,7 +94,9 @@ def add_stability_parser(commands) -> None:
     stability.add_argument('--controller', choices=('computed_torque', 'pd_gravity'), default='computed_torque',
                            help='computed torque with an exact model, or PD + gravity linearised at the goal q_f '
                                 "with the arm's inertia (computed_torque)")
-    stability.add_argument('--period', type=_positive, metavar='DT', help='also ω* = ωΔ*/Δ for this Δ in s')
+    stability.add_argument('--period', type=period_seconds, metavar='DT',
+                           help=f'also ω* = ωΔ*/Δ for this Δ in s, within '
+                                f'[{PERIOD_RANGE[0]:g}, {PERIOD_RANGE[1]:g}]')
     add_arm_arguments(stability)  # PD + gravity's arm: linearised at the motion's goal q_f, m_ii from the model
     stability.add_argument('--json', action='store_true', help='print one JSON object')
     stability.set_defaults(handler=command_stability)

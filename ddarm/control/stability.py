@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.polynomial import chebyshev
-from scipy.linalg import eigh
+from scipy.linalg import eigh, expm
 from scipy.optimize import brentq
 
 from ddarm.errors import DdarmError
@@ -36,16 +36,28 @@ from ddarm.errors import DdarmError
 ZETA_RANGE = (1e-6, 1e6)
 
 
+# The linearised coupled loop's state count above which its eigenvalues are not computed: a dense eigensolve of this
+# size takes a few seconds; an arm of hundreds of joints under a long delay would take many minutes.
+MAX_LOOP_STATES = 2000
+# |z| above which a root of the linearised loop counts as growing: eigenvalues are computed to about 1e-12 here.
+GROWING = 1.0 + 1e-9
+
+
 class StabilityError(DdarmError, ValueError):
     """A delay, damping, period or arm the stability boundary cannot be computed for."""
 
 
-def _checked(delay, zeta) -> tuple[int, float]:
+def _checked_delay(delay) -> int:
     if isinstance(delay, bool) or not isinstance(delay, (int, np.integer)) or delay < 0:
         raise StabilityError(f'delay must be a whole number of samples >= 0, got {delay!r}')
+    return int(delay)
+
+
+def _checked(delay, zeta) -> tuple[int, float]:
+    delay = _checked_delay(delay)
     if not (np.isfinite(zeta) and ZETA_RANGE[0] <= zeta <= ZETA_RANGE[1]):
         raise StabilityError(f'zeta must be within [{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}], got {float(zeta):g}')
-    return int(delay), float(zeta)
+    return delay, float(zeta)
 
 
 def boundary_omega_delta(delay: int, zeta: float) -> float:
@@ -121,3 +133,59 @@ def modal_boundary_omega_delta(gains: np.ndarray, delay: int, zeta: float) -> fl
         raise StabilityError(f'the modal gains μ_k must be positive, got {gains.tolist()}')
     roots = np.sqrt(gains)
     return float(min(boundary_omega_delta(delay, zeta * root) / root for root in np.unique(roots)))
+
+
+def sampled_loop_transition(mass_matrix: np.ndarray, stiffness: np.ndarray, damping: np.ndarray,
+                            position_feedback: np.ndarray, velocity_feedback: np.ndarray, period: float,
+                            delay: int) -> np.ndarray:
+    """The transition matrix of a sampled loop linearised about a rest point, coupled through M.
+
+    The plant M ẍ + S x + B ẋ = u (`stiffness` S = ∂G/∂q, `damping` B), u held over [t_n, t_{n+1}) at
+    u_n = -y_{n-d}, y = F_p x + F_v ẋ (the law's feedback, linearised). Its exact zero-order-hold discretisation
+    z_{n+1} = Φ z_n + Γ u_n, z = (x, ẋ), from the exponential of [[A, B_u], [0, 0]] Δ, and the delayed feedback as
+    the state (z_n, y_{n-1}, …, y_{n-d}): n (d + 2) numbers. Without S and B, and with F = [K_p K_v], these are
+    the modes of modal_gains; with them, the loop as the plant has it at that point.
+    """
+    mass_matrix = np.asarray(mass_matrix, dtype=float)
+    n = mass_matrix.shape[0]
+    delay = _checked_delay(delay)
+    if not (np.isfinite(period) and period > 0):
+        raise StabilityError(f'period must be finite and positive, got {period!r}')
+    if n * (delay + 2) > MAX_LOOP_STATES:
+        raise StabilityError(f'the linearised loop of {n} joints with a delay of {delay} samples has '
+                             f'{n * (delay + 2)} states, more than {MAX_LOOP_STATES}')
+    try:
+        inverse = np.linalg.inv(mass_matrix)
+    except np.linalg.LinAlgError as error:
+        raise StabilityError('the mass matrix M(q) is singular') from error
+    generator = np.zeros((3 * n, 3 * n))
+    generator[:n, n:2 * n] = np.eye(n)
+    generator[n:2 * n, :n] = -inverse @ stiffness
+    generator[n:2 * n, n:2 * n] = -inverse @ damping
+    generator[n:2 * n, 2 * n:] = inverse
+    step = expm(generator * period)
+    hold, response = step[:2 * n, :2 * n], step[:2 * n, 2 * n:]
+    feedback = np.hstack([position_feedback, velocity_feedback])
+    if delay == 0:
+        return hold - response @ feedback
+    size = n * (delay + 2)
+    matrix = np.zeros((size, size))
+    matrix[:2 * n, :2 * n] = hold
+    matrix[:2 * n, size - n:] = -response
+    matrix[2 * n:3 * n, :2 * n] = feedback
+    matrix[3 * n:, 2 * n:size - n] = np.eye(n * (delay - 1))
+    return matrix
+
+
+def growing_modes(transition: np.ndarray, joints: int) -> tuple[float, np.ndarray]:
+    """(spectral radius, share): the largest |z| of `transition` (sampled_loop_transition's), and per joint the
+    largest |x_i| / max_j |x_j| over the eigenvectors whose |z| exceeds 1 (all 0 when none does): which joints the
+    growing modes move."""
+    values, vectors = np.linalg.eig(transition)
+    magnitudes = np.abs(values)
+    share = np.zeros(joints)
+    for k in np.flatnonzero(magnitudes > GROWING):
+        positions = np.abs(vectors[:joints, k])
+        if positions.max() > 0:
+            share = np.maximum(share, positions / positions.max())
+    return float(magnitudes.max()), share

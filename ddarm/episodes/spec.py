@@ -10,6 +10,7 @@ import numpy as np
 
 from ddarm.control.gains import omega_rule_gains
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay, checked_gains
+from ddarm.control.stability import StabilityError, growing_modes, sampled_loop_transition
 from ddarm.errors import DdarmError
 from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau, disturbed_start, nominal_torque,
@@ -20,6 +21,10 @@ from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantErr
 
 # Refused before any work: far beyond any episode this project runs (FAULTS.md 6).
 MAX_SAMPLES = 1_000_000
+# Δ in s: below a microsecond no controller samples, and T/Δ, ω* = ωΔ*/Δ stay far from overflow.
+PERIOD_RANGE = (1e-6, 10.0)
+# T in s, a motion file's too: hours of motion, and T/Δ is computed without overflow at every Δ of PERIOD_RANGE.
+MAX_DURATION = 10_000.0
 
 
 # 'paper': Table 2's 2 x max |P^nom| per joint (spec §7); 'urdf': the plant URDF's <limit effort>.
@@ -59,9 +64,16 @@ class EpisodeSpec:
     def __post_init__(self) -> None:
         if self.duration is None:  # read here only: a spec read back from a bag needs no file
             try:
-                object.__setattr__(self, 'duration', float(motion_file(self).motion.duration))
+                motion = motion_file(self).motion
             except MotionError as error:
                 raise EpisodeError(str(error)) from error
+            if not motion.duration <= MAX_DURATION:
+                field, instead = (('duration', ' (or give the episode its own, --duration)')
+                                  if isinstance(motion, ProgrammedMotion) else ("the last point's time_from_start", ''))
+                raise EpisodeError(f'motion {motion_source(self)}: its {field} {motion.duration!r} s is more than '
+                                   f'{MAX_DURATION:g} s{instead}')
+            object.__setattr__(self, 'duration', float(motion.duration))
+        checked_duration(self.duration, checked_period(self.period))
         for name in ('kp', 'kv', 'external_torque', 'viscous_friction', 'coulomb_friction', 'mass_scale'):
             object.__setattr__(self, name, _optional_tuple(getattr(self, name)))
         if not isinstance(self.torque_limit, str):
@@ -74,13 +86,38 @@ class EpisodeSpec:
         try:
             checked_tau(self.tau, self.duration)
             checked_delay(self.delay)
-            if sample_count(self.duration, self.period) > MAX_SAMPLES:
-                raise EpisodeError(f'{self.duration} s at {self.period} s is more than {MAX_SAMPLES} samples')
+            sample_count(self.duration, self.period)
         except (GainError, ValueError) as error:
             raise EpisodeError(str(error)) from error
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def checked_period(period) -> float:
+    """Δ in s within PERIOD_RANGE; EpisodeError naming it otherwise."""
+    if not (_is_number(period) and PERIOD_RANGE[0] <= period <= PERIOD_RANGE[1]):
+        raise EpisodeError(f'the sampling period Δ must be within [{PERIOD_RANGE[0]:g}, {PERIOD_RANGE[1]:g}] s, '
+                           f'got {period!r}')
+    return float(period)
+
+
+def checked_duration(duration, period: float) -> float:
+    """T in s within [PERIOD_RANGE[0], MAX_DURATION] and at most MAX_SAMPLES periods (a `period` checked_period
+    took); EpisodeError naming it otherwise."""
+    if not (_is_number(duration) and np.isfinite(duration)):
+        raise EpisodeError(f'the duration T must be a finite number of s, got {duration!r}')
+    # Compared as a product: T/Δ itself is not formed before it is known to be a bounded count.
+    if duration > MAX_SAMPLES * period:
+        raise EpisodeError(f'the duration {duration} s at the period {period} s is more than {MAX_SAMPLES} samples')
+    if not PERIOD_RANGE[0] <= duration <= MAX_DURATION:
+        raise EpisodeError(f'the duration T must be within [{PERIOD_RANGE[0]:g}, {MAX_DURATION:g}] s, '
+                           f'got {duration!r}')
+    return float(duration)
 
 
 @dataclass(frozen=True)
@@ -107,7 +144,8 @@ class EpisodePlan:
 
 @lru_cache(maxsize=64)
 def _read_motion(path: str, stamp: tuple[int, int]) -> MotionFile:
-    return load_motion(path)
+    with np.errstate(over='ignore', invalid='ignore'):  # a spline beyond floats is refused by name (sampled_motion)
+        return load_motion(path)
 
 
 def read_motion_file(motion: str | None, trajectory: int = 1) -> MotionFile:
@@ -198,15 +236,22 @@ def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
         raise EpisodeError(f'motion {spec.motion}: T = {spec.duration!r} s ends before its last point at '
                            f'{motion.duration!r} s: the arm would never be sent to the goal (give --duration of at '
                            'least that, or none)')
-    q_ref, v_ref, a_ref = motion.sample(times)
     warnings = motion_limit_warnings(plant, motion, spec)
+    q_ref, v_ref, a_ref = sampled_motion(motion, times, motion_source(spec), model.joint_names)
     try:
         for arm in (plant, model):
             arm.check_inertia(motion.q0, 'the start of the motion')
     except ModelError as error:
         raise EpisodeError(str(error)) from error
-    nominal = nominal_torque(model, motion, times)
+    with np.errstate(all='ignore'):  # a torque beyond floats is refused below, by joint
+        nominal = nominal_torque(model, motion, times)
     source = motion_source(spec)
+    beyond = ~np.isfinite(nominal)
+    if beyond.any():
+        at, joint = np.argwhere(beyond)[0]
+        raise EpisodeError(f'motion {source}: joint {model.joint_names[joint]!r} needs a nominal torque of '
+                           f'{nominal[at, joint]} at t = {times[at]:.6g} s (q̇^d = {v_ref[at, joint]:.6g}, q̈^d = '
+                           f'{a_ref[at, joint]:.6g}), not a finite number: the motion asks more than any torque')
     for name, largest in zip(model.joint_names, np.max(np.abs(nominal), axis=0)):
         if not largest > 0:
             raise EpisodeError(f'motion {source}: joint {name!r} neither moves nor carries gravity along the motion '
@@ -239,6 +284,21 @@ def urdf_torque_limit(arm: Arm) -> np.ndarray:
 LIMIT_CHECK_POINTS = 4001
 
 
+def sampled_motion(motion, times: np.ndarray, source: str, joint_names) -> tuple[np.ndarray, ...]:
+    """(q^d, q̇^d, q̈^d) at `times`, refused naming the joint and the time where one is not a finite number (a
+    waypoint's velocity or acceleration too large to spline)."""
+    with np.errstate(all='ignore'):  # the refusal below says it, once and by name
+        samples = motion.sample(times)
+    for symbol, values in zip(('q^d', 'q̇^d', 'q̈^d'), samples):
+        bad = ~np.isfinite(values)
+        if bad.any():
+            at, joint = np.argwhere(bad)[0]
+            raise EpisodeError(f'motion {source}: joint {joint_names[joint]!r} has {symbol} = {values[at, joint]} '
+                               f'at t = {times[at]:.6g} s, not a finite number: its points\' velocities or '
+                               'accelerations are too large to spline')
+    return samples
+
+
 def motion_limit_warnings(arm: Arm, motion, spec: EpisodeSpec) -> list[str]:
     """Refuse a motion whose start, goal or waypoints lie outside the URDF's position limits, or whose q^d leaves
     the plant's divergence bound (spec §12); warn (naming the joint) where q^d between them leaves the position
@@ -252,7 +312,7 @@ def motion_limit_warnings(arm: Arm, motion, spec: EpisodeSpec) -> list[str]:
                 raise EpisodeError(f'motion {source}: {label} of joint {name!r} is {float(value)!r}, outside its '
                                    f'URDF limits [{float(lower)}, {float(upper)}] ({arm.urdf_path})')
     times = np.linspace(0.0, motion.duration, LIMIT_CHECK_POINTS)
-    q_ref, v_ref, _ = motion.sample(times)
+    q_ref, v_ref, a_ref = sampled_motion(motion, times, source, arm.joint_names)
     for i, name in enumerate(arm.joint_names):
         beyond = np.abs(q_ref[:, i]) > DEFAULT_MAX_POSITION
         if beyond.any():
@@ -279,9 +339,74 @@ def gains_from_omega(spec: EpisodeSpec, omega: float) -> tuple[np.ndarray, np.nd
     if not (np.isfinite(omega) and omega > 0):
         raise EpisodeError(f'omega must be finite and positive, got {omega!r}')
     try:
-        return omega_rule_gains(spec.controller, model_arm(spec), omega, episode_motion(spec).qf)
+        with np.errstate(over='ignore', under='ignore'):  # gains beyond floats are refused below, naming ω
+            kp, kv = omega_rule_gains(spec.controller, model_arm(spec), omega, episode_motion(spec).qf)
     except GainError as error:
         raise EpisodeError(str(error)) from error
+    if not (np.all(np.isfinite(kp) & (kp > 0)) and np.all(np.isfinite(kv) & (kv > 0))):
+        raise EpisodeError(f'omega = {omega!r} gives the ω rule gains kp = {np.asarray(kp).tolist()}, '
+                           f'kv = {np.asarray(kv).tolist()}: not all finite and positive')
+    return kp, kv
+
+
+# The step of the central differences of G(q): their error, ~h² times G's third derivative, is far below what
+# moves the loop's roots.
+GRAVITY_STEP = 1e-6
+# A joint whose part in a growing mode is at least this share of the largest joint's is named in the warning.
+NAMED_SHARE = 0.5
+
+
+def gravity_stiffness(arm: Arm, q: np.ndarray) -> np.ndarray:
+    """∂G/∂q at q, by central differences of G."""
+    columns = []
+    for i in range(arm.dof):
+        step = np.zeros(arm.dof)
+        step[i] = GRAVITY_STEP
+        columns.append((arm.gravity(q + step) - arm.gravity(q - step)) / (2 * GRAVITY_STEP))
+    return np.array(columns).T
+
+
+def loop_feedback(spec: EpisodeSpec, model: Arm, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F_p, F_v) of the law linearised at rest at q: u = -(F_p x + F_v ẋ) at the measured sample, x = q - q^d.
+
+    PD + gravity (2.1): K_p, K_v (its Ĝ(q^d) is a feedforward). Computed torque (2.6): M̂(q) K_p - ∂Ĝ/∂q and
+    M̂(q) K_v - B̂, its model's gravity and viscous friction (the plant's, spec §5) taken at the measured state.
+    """
+    kp, kv = np.diag(spec.kp), np.diag(spec.kv)
+    if spec.controller == 'pd_gravity':
+        return kp, kv
+    mass = model.mass_matrix(q)
+    friction = np.diag(spec.viscous_friction) if spec.viscous_friction is not None else np.zeros_like(kv)
+    return mass @ kp - gravity_stiffness(model, q), mass @ kv - friction
+
+
+def loop_stability_warnings(spec: EpisodeSpec, subject: str = 'the gains') -> list[str]:
+    """A warning, naming the joints, when the spec's gains lie beyond the stability boundary of its sampled loop
+    linearised at rest at the motion's start q_0 or goal q_f: the plant's full M(q), ∂G/∂q and viscous friction,
+    the law's feedback (loop_feedback), Δ and the delay. The ω rules' boundary treats each joint alone; on a coupled
+    arm this is where the loop the plant has stops being stable, whatever rule chose the gains."""
+    plant, model = plant_arm(spec), model_arm(spec)
+    motion = episode_motion(spec)
+    damping = (np.diag(spec.viscous_friction) if spec.viscous_friction is not None
+               else np.zeros((plant.dof, plant.dof)))
+    growing, share = [], np.zeros(plant.dof)
+    for label, q in (('start q_0', motion.q0), ('goal q_f', motion.qf)):
+        try:
+            transition = sampled_loop_transition(plant.mass_matrix(q), gravity_stiffness(plant, q), damping,
+                                                 *loop_feedback(spec, model, q), spec.period, spec.delay)
+        except StabilityError as error:
+            return [f'the stability of {subject} was not checked: {error}']
+        radius, joints = growing_modes(transition, plant.dof)
+        if joints.any():
+            growing.append(f'{radius:.6g} at the {label}')
+            share = np.maximum(share, joints)
+    if not growing:
+        return []
+    named = [plant.joint_names[i] for i in np.argsort(-share, kind='stable') if share[i] >= NAMED_SHARE]
+    return [f"{subject} lie beyond the stability boundary of the sampled loop (Δ = {spec.period:g} s, delay "
+            f"{spec.delay}) linearised at rest with the arm's M(q) and ∂G/∂q: its spectral radius is "
+            f"{' and '.join(growing)}, above 1; its growing modes move mostly {', '.join(named)}, whose errors "
+            'grow while the arm is near there (lower the gains, Δ or the delay)']
 
 
 def plant_options(spec: EpisodeSpec, plan: EpisodePlan, dof: int) -> PlantOptions:

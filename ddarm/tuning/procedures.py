@@ -82,14 +82,20 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
     unlimited = dataclasses.replace(spec, torque_limit='none')
     steps, chosen, chosen_gains = [], None, (None, None)
     # A disturbance-free arm needs no minimum: the raising then starts from one step.
-    omega = max(omega_min, omega_step)
-    if (omega_max - omega) / omega_step > MAX_OMEGA_STEPS:
-        raise EpisodeError(f'from ω = {omega:.6g} to omega max {omega_max!r} in steps of {omega_step!r} is more than '
+    start = max(omega_min, omega_step)
+    if not start <= omega_max * (1 + 1e-12):
+        raise EpisodeError(f'ω_min = {omega_min:.6g} from the permitted errors is above omega max {omega_max!r}: '
+                           'no ω to try (permit larger errors or raise omega max)')
+    # Each ω a product of the step, never a running sum: a step below ω's last bit would leave ω where it was.
+    raises = (omega_max - start) / omega_step
+    if raises > MAX_OMEGA_STEPS:
+        raise EpisodeError(f'from ω = {start:.6g} to omega max {omega_max!r} in steps of {omega_step!r} is more than '
                            f'{MAX_OMEGA_STEPS} episodes: take a larger omega step or a smaller omega max')
     # The actuator limit of the raising step: the spec's, or the paper's (2 x max nominal) if it has none.
     limit = plan_episode(dataclasses.replace(spec, torque_limit='paper' if spec.torque_limit == 'none'
                                              else spec.torque_limit)).torque_limit
-    while omega <= omega_max + 1e-12:
+    for raised in range(int(np.floor(max(raises, 0.0) + 1e-9)) + 1):
+        omega = start + raised * omega_step
         kp, kv = gains_from_omega(spec, omega)
         result = run_episode(dataclasses.replace(unlimited, kp=kp, kv=kv))
         largest = np.max(np.abs(result.scored('torque')), axis=0)
@@ -101,5 +107,4 @@ def omega_procedure(spec: EpisodeSpec, permitted_error: np.ndarray, torque_facto
         if not accepted:
             break
         chosen, chosen_gains = float(omega), (kp, kv)
-        omega += omega_step
     return OmegaChoice(omega_min, error_unit / (gain_scale * omega_min**2), chosen, *chosen_gains, steps)

@@ -1,0 +1,161 @@
+"""Numbers from someone else (a period, a duration, a motion file's duration, the ω procedure's steps) are refused
+by name before any work, JSON never holds a number JSON cannot, and a procedure that finds nothing says so with a
+non-zero exit."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ddarm.cli.main import main
+from ddarm.episodes.spec import MAX_DURATION, PERIOD_RANGE, EpisodeError, EpisodeSpec
+from ddarm.tuning import procedures
+
+ROOT = Path(__file__).resolve().parents[1]
+PANDA = ROOT / 'config' / 'arms' / 'panda'
+
+
+def strict_json(text: str):
+    """JSON as the standard has it: Infinity and NaN are no numbers of it."""
+    def refuse(constant):
+        raise AssertionError(f'{constant} in the JSON')
+    return json.loads(text, parse_constant=refuse)
+
+
+def refused_by_the_parser(capsys, arguments: list[str], option: str) -> str:
+    """Exit 2 on one line naming the option: argparse's refusal, or the episode's (which names the quantity)."""
+    try:
+        code = main(arguments)
+    except SystemExit as stop:
+        code = stop.code
+    captured = capsys.readouterr()
+    quantity = {'--period': 'period', '--duration': 'duration'}[option]
+    assert code == 2 and 'Traceback' not in captured.err, captured.err
+    assert len(captured.err.strip().splitlines()) == 1 and quantity in captured.err, captured.err
+    assert captured.out == ''
+    return captured.err
+
+
+@pytest.mark.parametrize('period', ['1e-320', '5e-324', '1e-7', '0', '1e300', 'inf'])
+@pytest.mark.parametrize('command', [
+    ['stability'], ['stability', '--json'], ['stability', '--controller', 'pd_gravity', '--json'],
+    ['episode', '--controller', 'computed_torque', '--omega', '15'],
+    ['omega', '--controller', 'computed_torque', '--max-error', '0.5', '--disturbance', '0', '10', '0'],
+    ['tune', '--controller', 'pd_gravity', '--index', 'I'],
+])
+def test_a_period_outside_its_range_is_refused_by_name(capsys, tmp_path, command, period):
+    extra = ['--runs', str(tmp_path)] if command[0] in ('omega', 'tune') else []
+    err = refused_by_the_parser(capsys, [*command, '--period', period, *extra], '--period')
+    assert ('not a finite number' if period == 'inf' and command[0] != 'stability' else f'{PERIOD_RANGE[0]:g}') in err
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize('duration', ['1e308', '1e-320', str(2 * MAX_DURATION)])
+def test_a_duration_outside_its_range_is_refused_by_name(capsys, duration):
+    refused_by_the_parser(capsys, ['episode', '--controller', 'computed_torque', '--omega', '15',
+                                   '--duration', duration], '--duration')
+
+
+@pytest.mark.parametrize('fields', [
+    {'period': 1e-320}, {'period': 5e-324}, {'period': 1e-7}, {'period': float('inf')}, {'period': 1e300},
+    {'duration': 1e308}, {'duration': float('nan')}, {'duration': 2 * MAX_DURATION},
+    {'duration': 1.0, 'period': PERIOD_RANGE[0] / 2},
+])
+def test_an_episode_spec_refuses_a_period_or_duration_by_name(fields):
+    name = 'period' if 'period' in fields and not PERIOD_RANGE[0] <= fields['period'] <= PERIOD_RANGE[1] \
+        else 'duration'
+    with pytest.raises(EpisodeError, match=name):
+        EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, **fields)
+
+
+def test_more_samples_than_the_bound_are_refused_naming_both_values():
+    with pytest.raises(EpisodeError, match=r'the duration 100.0 s at the period 1e-05 s is more than 1000000 samples'):
+        EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, duration=100.0, period=1e-5)
+
+
+@pytest.mark.parametrize('duration', ['1e308', '1.0e+300', str(2 * MAX_DURATION)])
+def test_a_motion_files_duration_beyond_the_bound_is_refused_naming_the_file(capsys, tmp_path, duration):
+    text = (PANDA / 'panda-motion.yaml').read_text()
+    motion = tmp_path / 'long.yaml'
+    motion.write_text(text.replace('duration: 1.0', f'duration: {duration}'))
+    assert f'duration: {duration}' in motion.read_text()
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '15', '--urdf', str(PANDA / 'panda.urdf'),
+                 '--motion', str(motion)]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and str(motion) in err and 'duration' in err and f'{MAX_DURATION:g}' in err
+
+
+def test_waypoint_velocities_beyond_any_torque_are_not_blamed_on_a_still_joint(capsys, tmp_path):
+    motion = tmp_path / 'fast.yaml'
+    motion.write_text('joint_names: [joint1, joint2, joint3]\n'
+                      'points:\n'
+                      '  - positions: [0.0, 0.5, -0.5]\n'
+                      '    velocities: [1.0e308, 0.0, 0.0]\n'
+                      '    time_from_start: 0.5\n'
+                      '  - positions: [0.2, 0.6, -0.4]\n'
+                      '    time_from_start: 1.0\n'
+                      'start: [0.0, 0.4, -0.6]\n')
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15', '--motion', str(motion)]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'neither moves' not in err and 'joint1' in err and 'finite' in err
+
+
+def test_the_stability_json_is_strict_at_the_smallest_period(capsys):
+    assert main(['stability', '--period', f'{PERIOD_RANGE[0]!r}', '--json']) == 0
+    report = strict_json(capsys.readouterr().out)
+    assert all(np.isfinite(entry['omega']) for entry in report['boundaries'])
+
+
+def omega_arguments(tmp_path, *extra):
+    return ['omega', '--controller', 'computed_torque', '--max-error', '0.5', '--disturbance', '0', '10', '0',
+            '--runs', str(tmp_path / 'runs'), '--run', 'procedure', *extra]
+
+
+@pytest.mark.parametrize('json_flag', [[], ['--json']])
+def test_an_omega_procedure_that_finds_no_omega_exits_non_zero_and_says_so(capsys, tmp_path, json_flag):
+    (tmp_path / 'runs').mkdir()
+    out = tmp_path / 'gains.yaml'
+    code = main(omega_arguments(tmp_path, '--torque-factor', '0.01', '--out', str(out), *json_flag))
+    captured = capsys.readouterr()
+    assert code != 0
+    assert 'no ω' in captured.err and f'{out} not written' in captured.err
+    assert not out.exists()
+    summary = json.loads((tmp_path / 'runs' / 'procedure' / 'summary.json').read_text())
+    assert summary['omega']['omega'] is None and summary['status'] != 'complete'
+    if json_flag:
+        assert strict_json(captured.out)['omega'] is None
+
+
+@pytest.mark.parametrize('extra', [['--max-error', '1e-300'], ['--omega-max', '1']])
+def test_an_omega_min_above_omega_max_is_refused_before_any_episode(capsys, tmp_path, extra):
+    (tmp_path / 'runs').mkdir()
+    assert main([*omega_arguments(tmp_path), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'omega max' in err and 'ω_min' in err
+    assert not any((tmp_path / 'runs').iterdir())
+
+
+def test_the_raising_step_runs_a_bounded_number_of_episodes_whatever_the_step(monkeypatch):
+    spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, external_torque=(0.0, 10.0, 0.0))
+    permitted = np.radians(0.5)
+    error_unit, gain_scale = procedures.steady_state_error_per_unit_gain(spec)
+    omega_min = procedures.smallest_omega(error_unit, gain_scale, np.full(3, permitted))
+    episodes = []
+    simulate = procedures.run_episode
+
+    def counted(episode_spec):
+        episodes.append(episode_spec.kp)
+        assert len(episodes) <= 3, 'the raising step does not end'
+        return simulate(episode_spec)
+
+    monkeypatch.setattr(procedures, 'run_episode', counted)
+    # A step below the last bit of ω: adding it leaves ω where it was.
+    choice = procedures.omega_procedure(spec, permitted, torque_factor=100.0, omega_step=1e-300, omega_max=omega_min)
+    assert len(episodes) == 1 and choice.omega == pytest.approx(omega_min, rel=1e-15)
+
+
+def test_the_raising_step_takes_each_omega_as_a_product_of_the_step(monkeypatch):
+    spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, external_torque=(0.0, 0.01, 0.0))
+    choice = procedures.omega_procedure(spec, np.radians(90.0), torque_factor=1e9, omega_step=0.1, omega_max=3.0)
+    assert [step.omega for step in choice.steps] == [0.1 + k * 0.1 for k in range(30)]
