@@ -89,14 +89,15 @@ print(PAPER_TRAJECTORIES)
 def test_any_double_written_with_repr_reads_back_bit_for_bit(tmp_path):
     values = np.random.default_rng(0).normal(scale=[1e-300, 1e-8, 1.0, 1e8, 1e300], size=(40, 5)).ravel()
     values = np.concatenate([values, [0.0, -0.0, 5e-324, np.nextafter(1.0, 2.0), np.pi]])
-    names = [f'j{i}' for i in range(len(values))]
-    path = tmp_path / 'motion.yaml'
-    path.write_text(f'joint_names: [{", ".join(names)}]\nduration: 0.1\nprofile: bang_bang\n'
-                    f'start: [{", ".join(repr(float(v)) for v in values)}]\n'
-                    f'goal: [{", ".join(repr(float(v)) for v in values[::-1])}]\n')
-    loaded = load_motion(path)
-    assert loaded.joint_names == tuple(names)
-    assert bits(loaded.motion.q0) == bits(values) and bits(loaded.motion.qf) == bits(values[::-1])
+    for chunk in np.array_split(values, 4):  # a motion drives at most MAX_JOINTS joints
+        names = [f'j{i}' for i in range(len(chunk))]
+        path = tmp_path / 'motion.yaml'
+        path.write_text(f'joint_names: [{", ".join(names)}]\nduration: 0.1\nprofile: bang_bang\n'
+                        f'start: [{", ".join(repr(float(v)) for v in chunk)}]\n'
+                        f'goal: [{", ".join(repr(float(v)) for v in chunk[::-1])}]\n')
+        loaded = load_motion(path)
+        assert loaded.joint_names == tuple(names)
+        assert bits(loaded.motion.q0) == bits(chunk) and bits(loaded.motion.qf) == bits(chunk[::-1])
 
 
 def test_a_good_file_loads(tmp_path):
@@ -333,7 +334,6 @@ LAST_TIME = 'time_from_start: {sec: 1, nanosec: 250000000}'
     ('joint_names: [a]\npoints:\n  - {positions: [1.0], time_from_start: 0.0}\n', 'no motion'),
     # the end, held at rest
     (waypoints_edited('velocities: [0.0, 0.0]', 'velocities: [0.0, 0.1]'), 'points[1] (the last) has velocities'),
-    (waypoints_edited('accelerations: [0.0, 0.0]', 'accelerations: [-2.0, 0.0]'), 'points[1] (the last) has accel'),
     # start
     (waypoints_edited('start: [0.0, 1.0]', 'start: [0.0]'), 'start must list one position per joint'),
     (waypoints_edited('start: [0.0, 1.0]', 'start:'), 'start must list one position per joint'),

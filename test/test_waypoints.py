@@ -303,8 +303,6 @@ def test_the_samples_are_the_jtcs_own_arithmetic_to_the_bit():
      'points[0] has accelerations without velocities'),
     (dict(times=[0.0, 1.0], positions=[[0.0], [1.0]], velocities=([0.0], [0.5])),
      'points[1] (the last) has velocities'),
-    (dict(times=[0.0, 1.0], positions=[[0.0], [1.0]], velocities=([0.0], [0.0]), accelerations=([0.0], [1.0])),
-     'points[1] (the last) has accelerations'),
     (dict(times=[0.5, 1.0], positions=[[0.0], [1.0]]), 'points[0].time_from_start is 0.5 s, not 0: give start'),
     (dict(times=[0.0, 1.0], positions=[[0.0], [1.0]], start=[0.0]), 'points[0].time_from_start is 0.0 s with a start'),
     (dict(times=[0.0, 1.0, 1.0], positions=[[0.0], [1.0], [2.0]]), 'points[2].time_from_start 1.0 s is not after'),

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,8 +22,9 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from ddarm.motion.files import DataLoader, parse_motion
+from ddarm.motion.files import MAX_JOINTS, MAX_POINTS, DataLoader, parse_motion, shown
 from ddarm.motion.programmed import MotionError
+from ddarm.recording.bags import MAX_TOPIC_MESSAGES, BagError, checked_metadata
 
 # For a bag that carries no message definitions of its own (older sqlite3 bags).
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -60,6 +61,10 @@ def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequ
     if not (bag / 'metadata.yaml').is_file():
         raise MotionError(f'{bag}: no metadata.yaml in it: not a rosbag2 bag, or a recording that never closed')
     try:
+        checked_metadata(bag)  # before rosbags reads it
+    except BagError as error:
+        raise MotionError(str(error)) from None
+    try:
         with AnyReader([bag], default_typestore=TYPESTORE) as reader:
             topic, msgtype, connections = _chosen_topic(bag, reader, topic)
             if msgtype == JOINT_TRAJECTORY and (joints is not None or start is not None or end is not None):
@@ -67,6 +72,9 @@ def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequ
                                   'start and end choose among /joint_states messages')
             messages = []
             for _, _, raw in reader.messages(connections=connections):
+                if len(messages) == MAX_TOPIC_MESSAGES:  # counted as read: the metadata's count may lie
+                    raise MotionError(f'{bag}: {topic} holds more than {MAX_TOPIC_MESSAGES} messages, the most a '
+                                      'motion is taken from')
                 messages.append(_deserialized(f'{bag}: {topic}', reader, bytes(raw), msgtype))
                 if msgtype == JOINT_TRAJECTORY:
                     break
@@ -135,6 +143,12 @@ def _from_trajectory(where: str, bag: Path, topic: str, message, count: int) -> 
              f'of its first message (of {count}), as they are.']
     if any(len(point.effort) for point in message.points):
         lines.append("# The points' effort is left out: a motion file holds q^d; its torque P^nom is computed.")
+    if len(message.joint_names) > MAX_JOINTS:
+        raise MotionError(f'{where}: its first message names {len(message.joint_names)} joints, more than the '
+                          f'{MAX_JOINTS} a motion may drive')
+    if len(message.points) > MAX_POINTS:
+        raise MotionError(f'{where}: its first message holds {len(message.points)} points, more than the '
+                          f'{MAX_POINTS} a motion may have')
     lines += [f'joint_names: {_names(message.joint_names)}', 'points:']
     for i, point in enumerate(message.points):
         if not len(point.positions):
@@ -165,6 +179,9 @@ def _from_joint_states(where: str, bag: Path, topic: str, messages: list, joints
     after_first = [(stamp - stamps[0]) / _NANOSEC_PER_SEC for stamp in stamps]
     used = [i for i, t in enumerate(after_first)
             if (start is None or start <= t) and (end is None or t <= end)]
+    if len(used) > MAX_POINTS:
+        raise MotionError(f'{where}: {len(used)} of its messages within the window, more than the {MAX_POINTS} points '
+                          'a motion may have: choose a shorter window (start, end)')
     if len(used) < 2:
         window = f'[{0.0 if start is None else start!r}, {after_first[-1] if end is None else end!r}] s'
         raise MotionError(f'{where}: {len(used)} of its {len(messages)} messages (t = 0.0 to {after_first[-1]!r} s) '
@@ -172,23 +189,29 @@ def _from_joint_states(where: str, bag: Path, topic: str, messages: list, joints
     chosen = list(messages[used[0]].name) if joints is None else list(joints)
     if not chosen:
         raise MotionError(f'{where}: no joints to take (message {used[0]} names none)')
-    repeated = sorted({name for name in chosen if chosen.count(name) > 1})
+    if len(chosen) > MAX_JOINTS:
+        raise MotionError(f'{where}: {len(chosen)} joints to take, more than the {MAX_JOINTS} a motion may drive')
+    repeated = sorted(name for name, count in Counter(chosen).items() if count > 1)
     if repeated and joints is not None:  # a message's own repeated names are refused below, naming it
         raise MotionError(f'{where}: the joints {repeated} are asked for more than once')
     positions, velocities = [], []
     for i in used:
         message = messages[i]
         names = list(message.name)
-        if len(set(names)) != len(names):
-            raise MotionError(f'{where}: message {i} names a joint more than once: {names}')
+        if len(names) > MAX_JOINTS:
+            raise MotionError(f'{where}: message {i} names {len(names)} joints, more than the {MAX_JOINTS} an arm may '
+                              'have')
+        index = {name: k for k, name in enumerate(names)}
+        if len(index) != len(names):
+            raise MotionError(f'{where}: message {i} names a joint more than once: {shown(names)}')
         if len(message.position) != len(names):
             raise MotionError(f'{where}: message {i} has {len(message.position)} positions for {len(names)} joints')
         if len(message.velocity) not in (0, len(names)):
             raise MotionError(f'{where}: message {i} has {len(message.velocity)} velocities for {len(names)} joints')
-        missing = [name for name in chosen if name not in names]
+        missing = [name for name in chosen if name not in index]
         if missing:
-            raise MotionError(f'{where}: message {i} has no joint {", ".join(map(repr, missing))} (it has {names})')
-        order = [names.index(name) for name in chosen]
+            raise MotionError(f'{where}: message {i} has no joint {shown(missing)[1:-1]} (it has {shown(names)})')
+        order = [index[name] for name in chosen]
         positions.append(_finite(where, f'message {i} position', np.asarray(message.position)[order], chosen))
         velocities.append(_finite(where, f'message {i} velocity', np.asarray(message.velocity)[order], chosen)
                           if len(message.velocity) else None)

@@ -19,7 +19,8 @@ with zero velocity and acceleration, the JTC's segment from the state it holds w
 (Trajectory::set_point_before_trajectory_msg): its type follows the first point's fields. (A JTC clears that
 state's velocities or accelerations when the hardware has no such state interface, which makes the segment
 linear or cubic there: the same q^d as ddarm's only on hardware that reports them.) Before t = 0 the motion
-is at q0, after its last point it holds that point's positions, at rest.
+is at q0, after its last point it holds that point's positions, at rest: the last point's velocities are zero,
+its accelerations (as the JTC allows) anything, the end of the last segment.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ import numpy as np
 # time is that point's time (sample instants land on the points only up to rounding, j Δ against t_k).
 from ddarm.motion.programmed import _PHASE_EDGE, MotionError
 
+# A motion's points, bounded before any work on them: 100 s of a 1 kHz recording.
+MAX_POINTS = 100_000
 # The quintic's coefficients, the most of any segment type: every segment is kept as six, the lower types' with
 # zeros, which add nothing to the JTC's sums.
 _TERMS = 6
@@ -71,9 +74,13 @@ class WaypointMotion:
         start = None if self.start is None else np.array(self.start, dtype=float)
         if start is not None and start.shape != (joints,):
             raise MotionError(f'start must hold one position per joint ({joints}), got shape {start.shape}')
+        if count > MAX_POINTS:
+            raise MotionError(f'{count} points, more than the {MAX_POINTS} a waypoint motion may have')
         for name, values in (('times', times), ('positions', positions), ('start', start)):
             if values is not None and not np.all(np.isfinite(values)):
-                raise MotionError(f'{name} must be finite, got {values.tolist()}')
+                at = np.argwhere(~np.isfinite(values))[0]
+                raise MotionError(f'{name} must be finite, got {float(values[tuple(at)])!r} at '
+                                  f'[{", ".join(map(str, at))}]')
         for i, (velocity, acceleration) in enumerate(zip(velocities, accelerations)):
             if acceleration is not None and velocity is None:
                 # The JTC's spline has no segment for it: interpolate_between_points would leave q at zero.
@@ -93,10 +100,11 @@ class WaypointMotion:
                 raise MotionError(f'points[{i}].time_from_start {float(times[i])!r} s is not after '
                                   f"points[{i - 1}]'s {float(times[i - 1])!r} s (times must strictly increase, by "
                                   f'more than {2 * edge:.3g} s)')
-        for name, values in (('velocities', velocities[-1]), ('accelerations', accelerations[-1])):
-            if values is not None and np.any(values != 0.0):
-                raise MotionError(f'points[{count - 1}] (the last) has {name} {values.tolist()}: they must be '
-                                  'zero, the arm is held at the last positions after the motion')
+        # Its accelerations may be anything, as the JTC takes them: they shape the last segment only (ddarm's own
+        # recorded reference ends on the bang-bang's deceleration), and the arm is at rest after it.
+        if velocities[-1] is not None and np.any(velocities[-1] != 0.0):
+            raise MotionError(f'points[{count - 1}] (the last) has velocities {velocities[-1].tolist()}: they must be '
+                              'zero, the arm is held at the last positions after the motion')
         object.__setattr__(self, 'times', times)
         object.__setattr__(self, 'positions', positions)
         object.__setattr__(self, 'velocities', velocities)

@@ -27,7 +27,7 @@ from ddarm.control.gains import SEARCH_START_OMEGAS, omega_rule_computed_torque
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay
 from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 from ddarm.errors import DdarmError
-from ddarm.motion.files import DataLoader
+from ddarm.motion.files import DataFileError, DataLoader, read_data_file
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints
 from ddarm.paper import typed
 from ddarm.tuning.methods import DEFAULT_POPULATION
@@ -199,8 +199,8 @@ def load_settings(path: Path | str = SETTINGS_PATH) -> PaperSettings:
     """The settings file at `path`; SettingsError names the file and the key of anything refused."""
     path = Path(path)
     try:
-        document = yaml.load(path.read_text(), Loader=DataLoader)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as error:
+        document = yaml.load(read_data_file(path), Loader=DataLoader)
+    except (OSError, DataFileError, yaml.YAMLError) as error:
         raise SettingsError(f'{path}: cannot read the settings: {error}') from error
     _refuse_huge_integers(document, path, '')
     settings = typed.read(PaperSettings, document, str(path), SettingsError)

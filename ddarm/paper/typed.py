@@ -12,6 +12,8 @@ import types
 from collections.abc import Mapping
 from typing import Literal, Union, get_args, get_origin, get_type_hints
 
+from ddarm.motion.files import shown
+
 
 def read(kind: type, data, source: str, error: type[Exception]):
     """`data` as a `kind` (a dataclass); `error` names `source` and the key of anything refused."""
@@ -30,7 +32,8 @@ def write(value):
 
 
 def _join(path: str, key) -> str:
-    return f'{path}.{key}' if path else str(key)
+    name = str(key) if not isinstance(key, str) or len(key) <= 80 else key[:80] + '…'  # a path for messages only
+    return f'{path}.{name}' if path else name
 
 
 class _Reader:
@@ -51,16 +54,16 @@ class _Reader:
             return self.value(other, data, path)
         if origin is Literal:
             if isinstance(data, bool) or data not in arguments:
-                self.fail(f'{path} must be one of {arguments}, got {data!r}')
+                self.fail(f'{path} must be one of {arguments}, got {shown(data)}')
             return data
         if origin in (tuple, list):
             if not isinstance(data, list):
-                self.fail(f'{path} must be a list, got {data!r}')
+                self.fail(f'{path} must be a list, got {shown(data)}')
             items = [self.value(arguments[0], item, f'{path}[{i}]') for i, item in enumerate(data)]
             return tuple(items) if origin is tuple else items
         if origin in (dict, Mapping):
             if not isinstance(data, dict):
-                self.fail(f'{path} must be a mapping, got {data!r}')
+                self.fail(f'{path} must be a mapping, got {shown(data)}')
             key_kind, item_kind = arguments
             # Read-only: the settings are frozen all the way down.
             return types.MappingProxyType({self.value(key_kind, key, f'{_join(path, key)} (a key)'):
@@ -68,11 +71,11 @@ class _Reader:
                                            for key, item in data.items()})
         if kind is float:
             if isinstance(data, bool) or not isinstance(data, (int, float)):
-                self.fail(f'{path} must be a number, got {data!r}')
+                self.fail(f'{path} must be a number, got {shown(data)}')
             return float(data)
         if kind in (int, bool, str):
             if not isinstance(data, kind) or (kind is int and isinstance(data, bool)):
-                self.fail(f'{path} must be {kind.__name__}, got {data!r}')
+                self.fail(f'{path} must be {kind.__name__}, got {shown(data)}')
             return data
         raise TypeError(f'{path}: no reader for {kind!r}')
 

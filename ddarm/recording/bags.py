@@ -27,11 +27,12 @@ from rosbags.typesys import Stores, get_typestore
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.samples import MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.samples import MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at
 from ddarm.episodes.indices import IndicesError
 from ddarm.episodes.result import Episodes, RecordingError
-from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
+from ddarm.episodes.spec import MAX_SAMPLES, EpisodePlan, EpisodeSpec
 from ddarm.interrupts import Interrupted, critical_section
+from ddarm.motion.files import MAX_DEPTH, DataFileError, read_data_file, shown
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -361,14 +362,45 @@ def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpis
 # libyaml's safe loader, where PyYAML was built with it: the pure-Python one took 56 ms per bag's metadata, a
 # quarter of an episode's scoring.
 SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
+# A bag's metadata.yaml: an episode's is a few kB (its topics, files and custom data); 1 MiB is thousands of topics.
+MAX_METADATA_BYTES = 2**20
+# Messages of one topic read from a bag, counted as they are read (the metadata's counts may lie): an episode's
+# samples, one message each, and at most MAX_SAMPLES periods.
+MAX_TOPIC_MESSAGES = MAX_SAMPLES + 1
+
+
+def checked_metadata(path: Path | str) -> str:
+    """The text of the bag's metadata.yaml, once it is known to be a regular file of at most MAX_METADATA_BYTES,
+    nested at most MAX_DEPTH levels, with no YAML anchor or alias (rosbag2 writes none, and a few hundred bytes
+    of aliases expand to gigabytes): checked before rosbags or anything else reads it. BagError naming the bag."""
+    path = Path(path)
+    try:
+        text = read_data_file(path / 'metadata.yaml', MAX_METADATA_BYTES)
+        depth = 0
+        for event in yaml.parse(text, Loader=SAFE_LOADER):
+            if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None) is not None:
+                raise BagError(f'{path}: metadata.yaml holds a YAML anchor or alias, which rosbag2 never writes')
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise BagError(f'{path}: metadata.yaml nests more than {MAX_DEPTH} levels deep, which rosbag2 '
+                                   'never writes')
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+    except (OSError, DataFileError, yaml.YAMLError) as error:
+        raise BagError(f'{path}: unreadable bag: metadata.yaml: {" ".join(str(error).split())}') from error
+    return text
 
 
 def _custom_data(path: Path | str) -> dict:
     # From rosbag2's own metadata file, before any storage is opened: a recording marked
     # incomplete says so even when its storage file is damaged.
-    text = (Path(path) / 'metadata.yaml').read_text()
-    metadata = yaml.load(text, Loader=SAFE_LOADER)['rosbag2_bagfile_information']
-    return metadata.get('custom_data') or {}
+    metadata = yaml.load(checked_metadata(path), Loader=SAFE_LOADER)
+    information = metadata.get('rosbag2_bagfile_information') if isinstance(metadata, dict) else None
+    custom = information.get('custom_data') if isinstance(information, dict) else None
+    if not isinstance(custom or {}, dict):
+        raise BagError(f'{path}: metadata.yaml: custom_data is not a mapping')
+    return custom or {}
 
 
 def bag_status(path: Path | str) -> str:
@@ -400,7 +432,7 @@ def _publishers(path: Path, text) -> dict:
         publishers = None
     if not (isinstance(publishers, dict) and all(
             isinstance(nodes, list) and all(isinstance(node, str) for node in nodes) for nodes in publishers.values())):
-        raise BagError(f'{path}: custom_data {PUBLISHERS_KEY} is not a JSON object of node-name lists: {text!r}')
+        raise BagError(f'{path}: custom_data {PUBLISHERS_KEY} is not a JSON object of node-name lists: {shown(text)}')
     return publishers
 
 
@@ -416,6 +448,12 @@ def _check_one_source(path: Path, custom: dict, connections: dict) -> None:
             if len(nodes := publishers.get(topic, [])) > 1:
                 raise BagError(f'{path}: {topic} had {len(nodes)} publishers ({", ".join(nodes)}): '
                                'the evidence may mix two sources')
+
+
+def _check_message_count(path: Path, topic: str, count: int) -> None:
+    if count > MAX_TOPIC_MESSAGES:
+        raise BagError(f'{path}: {topic} holds more than {MAX_TOPIC_MESSAGES} messages, one per sample of the longest '
+                       f'episode ({MAX_SAMPLES} periods)')
 
 
 def _read(path: Path, require_complete: bool) -> BagEpisode:
@@ -438,14 +476,21 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
                                'the evidence may mix two sources')
         connections = {topic: by_topic[topic][0] for topic in read}
         _check_one_source(path, custom, connections)
+        for topic, connection in connections.items():
+            _check_message_count(path, topic, connection.msgcount)
         messages: dict = {topic: [] for topic in read}
         for connection, _, raw in reader.messages(connections=list(connections.values())):
-            messages[connection.topic].append(deserialize(raw, connection.msgtype))
+            received = messages[connection.topic]
+            _check_message_count(path, connection.topic, len(received) + 1)
+            received.append(deserialize(raw, connection.msgtype))
     if not messages[EPISODE_TOPIC]:
         raise BagError(f'{path}: {EPISODE_TOPIC} holds no configuration')
     episode = json.loads(messages[EPISODE_TOPIC][0].data)
     period = float(episode['spec']['period'])
     joints = list(episode['joints'])
+    if len(joints) > MAX_JOINTS:
+        raise BagError(f'{path}: {EPISODE_TOPIC} names {len(joints)} joints, more than the {MAX_JOINTS} an arm may '
+                       'have')
     if len(messages['/reference']) != 1:
         raise BagError(f"{path}: expected one /reference message, found {len(messages['/reference'])}")
     reference = messages['/reference'][0]

@@ -20,6 +20,7 @@ import logging
 import os
 import platform
 import socket
+import time
 from pathlib import Path
 
 from ddarm.errors import DdarmError
@@ -30,7 +31,8 @@ RAY_EXTRA = "pip install 'ddarm[ray]'"
 # The libraries whose versions decide a search's numbers, beside ddarm's own sources.
 NUMERICAL_PACKAGES = ('numpy', 'numba', 'scipy', 'cma', 'pin')
 CPUS_PER_JOB = 1
-# How long the address may take to accept a connection before it is refused: ray.init itself waits for ever.
+# How long the address may take to accept a connection, and then to answer as a Ray cluster's GCS, before it is
+# refused: ray.init itself retries for a quarter of an hour against a port where something else listens.
 CONNECT_TIMEOUT_S = 5.0
 # Ray replaces a loopback address by the machine's outward address (to reach multi-node clusters) unless this is 0,
 # Ray's switch for a one-machine cluster; a cluster started with it set listens on 127.0.0.1 only.
@@ -56,6 +58,83 @@ def is_loopback(host: str) -> bool:
         return host == 'localhost' or ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+# gRPC over HTTP/2 without TLS (RFC 9113, gRPC's PROTOCOL-HTTP2.md): what a Ray GCS speaks, just enough to make one
+# unary call and see whether a reply comes. Frame types and flags:
+_DATA, _HEADERS, _RST_STREAM, _SETTINGS, _GOAWAY = 0x0, 0x1, 0x3, 0x4, 0x7
+_END_STREAM, _ACK, _END_HEADERS = 0x1, 0x1, 0x4
+_PREFACE = b'PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n'
+# The call ray.init opens with: NodeInfoGcsService.GetClusterId, its request empty.
+_PROBE_PATH = '/ray.rpc.NodeInfoGcsService/GetClusterId'
+
+
+def _frame(kind: int, flags: int, stream: int, payload: bytes = b'') -> bytes:
+    return len(payload).to_bytes(3, 'big') + bytes([kind, flags]) + stream.to_bytes(4, 'big') + payload
+
+
+def _literal_header(name: str, value: str) -> bytes:
+    # HPACK's literal header field without indexing, new name, no Huffman coding (RFC 7541 §6.2.2): each string
+    # under 127 bytes, so its length is one byte.
+    return b'\x00' + bytes([len(name)]) + name.encode() + bytes([len(value)]) + value.encode()
+
+
+def _gcs_probe(host: str, port: int) -> bytes:
+    headers = b''.join(_literal_header(name, value) for name, value in (
+        (':method', 'POST'), (':scheme', 'http'), (':path', _PROBE_PATH), (':authority', f'{host}:{port}'),
+        ('content-type', 'application/grpc'), ('te', 'trailers')))
+    return (_PREFACE + _frame(_SETTINGS, 0, 0) + _frame(_HEADERS, _END_HEADERS, 1, headers)
+            + _frame(_DATA, _END_STREAM, 1, b'\x00' + (0).to_bytes(4, 'big')))  # one uncompressed, empty message
+
+
+def _answers_as_gcs(host: str, port: int) -> bool:
+    """Whether the peer answers the GCS's GetClusterId with a reply message within CONNECT_TIMEOUT_S: a Ray GCS
+    does; a gRPC server of another service ends the call without one, anything else never answers in HTTP/2."""
+    deadline = time.monotonic() + CONNECT_TIMEOUT_S
+    with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S) as connection:
+        connection.sendall(_gcs_probe(host, port))
+        received = b''
+
+        def read(count: int) -> bytes:
+            nonlocal received
+            while len(received) < count:
+                left = deadline - time.monotonic()
+                if left <= 0:  # also against a peer that never stops sending
+                    raise TimeoutError
+                connection.settimeout(left)
+                chunk = connection.recv(65536)
+                if not chunk:
+                    raise ConnectionError('the connection was closed')
+                received += chunk
+            taken, received = received[:count], received[count:]
+            return taken
+
+        while True:
+            header = read(9)
+            length, kind, flags = int.from_bytes(header[:3], 'big'), header[3], header[4]
+            stream = int.from_bytes(header[5:], 'big') & 0x7FFFFFFF
+            if length > 2**14:  # above HTTP/2's initial largest frame: no HTTP/2 server sends it unasked
+                return False
+            read(length)
+            if kind == _SETTINGS and not flags & _ACK:
+                connection.sendall(_frame(_SETTINGS, _ACK, 0))
+            elif stream == 1 and kind == _DATA:
+                return True
+            elif kind == _GOAWAY or stream == 1 and (kind == _RST_STREAM or kind == _HEADERS and flags & _END_STREAM):
+                return False  # the call ended without a reply
+
+
+def _check_gcs(address: str, host: str, port: int) -> None:
+    """Refuse an address where something listens that is not a Ray cluster's GCS: ray.init would wait there."""
+    try:
+        answered, why = _answers_as_gcs(host, port), ''
+    except TimeoutError:
+        answered, why = False, f' (no answer within {CONNECT_TIMEOUT_S:g} s)'
+    except OSError as error:  # the connection closed or reset
+        answered, why = False, f' ({error})'
+    if not answered:
+        raise ClusterError(f'--ray {address}: something listens there, but it does not answer as a Ray cluster\'s '
+                           f'GCS{why}; give the head node\'s GCS port (ray start --head --port=PORT)')
 
 
 def code_fingerprint() -> dict:
@@ -102,6 +181,7 @@ class RayCluster:
                                f'{LOOPBACK_SWITCH}=0, without which it does not connect to a cluster on 127.0.0.1; '
                                f'set it in the environment')
 
+        _check_gcs(address, host, port)
         self.ray, self.address = ray, address
         try:
             # Workers' output is not forwarded: this process's stdout may be JSON (--json), and a job's failure

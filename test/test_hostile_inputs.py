@@ -1,0 +1,293 @@
+"""Hostile data files, bags and cluster addresses (issue 23): every input has a stated bound, refused at once
+beyond it with a one-line error naming the file and the field, and no refusal writes out a whole value."""
+
+import importlib.util
+import os
+import socket
+import threading
+import tracemalloc
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Writer
+from rosbags.typesys import Stores, get_typestore
+
+from ddarm.cli.main import main
+from ddarm.motion import files, from_bag
+from ddarm.motion.files import MAX_FILE_BYTES, MAX_JOINTS, MAX_NODES, MAX_POINTS, load_motion
+from ddarm.motion.programmed import MotionError
+from ddarm.motion.waypoints import WaypointMotion
+from ddarm.paper.settings import SettingsError, load_settings
+from ddarm.recording import bags
+from ddarm.recording.bags import BagError, score_bag
+from ddarm.tuning import campaign
+from ddarm.tuning.campaign import MAX_JOBS, CampaignError, load_campaign
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+JOINT_TRAJECTORY = 'trajectory_msgs/msg/JointTrajectory'
+Header = TYPESTORE.types['std_msgs/msg/Header']
+Time = TYPESTORE.types['builtin_interfaces/msg/Time']
+Duration = TYPESTORE.types['builtin_interfaces/msg/Duration']
+JointState = TYPESTORE.types[JOINT_STATE]
+JointTrajectory = TYPESTORE.types[JOINT_TRAJECTORY]
+Point = TYPESTORE.types['trajectory_msgs/msg/JointTrajectoryPoint']
+EMPTY = np.array([], dtype=float)
+GOOD_MOTION = 'joint_names: [a, b]\nduration: 2.0\nprofile: bang_bang\nstart: [0.0, 1.0]\ngoal: [1.0, -1.0]\n'
+# Far more than any bounded refusal needs, far less than a value expanded by aliases takes.
+MEMORY_BOUND = 64 * 2**20
+
+
+def alias_bomb(levels: int, width: int = 9) -> str:
+    """A YAML flow list whose items are anchors, each listing the one before `width` times, and last an alias of
+    the last of them: width^(levels+1) values in a few hundred bytes."""
+    items = [f'&a0 [{", ".join(["0"] * width)}]']
+    items += [f'&a{i} [{", ".join([f"*a{i - 1}"] * width)}]' for i in range(1, levels + 1)]
+    return f'[{", ".join(items)}, *a{levels}]'
+
+
+def refused_within_memory(error, call, *arguments, memory: int = MEMORY_BOUND) -> str:
+    tracemalloc.start()
+    try:
+        with pytest.raises(error) as refused:
+            call(*arguments)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < memory, peak
+    message = str(refused.value)
+    assert len(message) < 1000, message[:1000]
+    return message
+
+
+LOADERS = {'motion': (load_motion, MotionError, 'joint_names'),
+           'campaign': (load_campaign, CampaignError, 'description'),
+           'settings': (load_settings, SettingsError, 'delays')}
+
+
+def with_others(path, kind: str, line: str):
+    """`line` and the other fields a good file of the kind has, so that the field of `line` is the one refused."""
+    others = {'motion': GOOD_MOTION.replace('joint_names: [a, b]\n', ''), 'campaign': 'laws: [pd_gravity]\n',
+              'settings': ''}[kind]
+    path.write_text(line + others)
+    return path
+
+
+@pytest.mark.parametrize('kind', sorted(LOADERS))
+def test_an_alias_bomb_is_refused_before_it_is_expanded(tmp_path, kind):
+    load, error, field = LOADERS[kind]
+    path = with_others(tmp_path / f'{kind}.yaml', kind, f'{field}: {alias_bomb(9)}\n')  # 9^10 values
+    assert path.stat().st_size < 1000
+    message = refused_within_memory(error, load, path)
+    assert message.startswith(f'{path}: ') and f'more than {MAX_NODES} values' in message
+
+
+@pytest.mark.parametrize('kind', ['motion', 'campaign'])
+def test_a_value_repeated_by_aliases_within_the_bound_is_refused_by_its_field_and_shown_short(tmp_path, kind):
+    load, error, field = LOADERS[kind]
+    path = tmp_path / f'{kind}.yaml'
+    with_others(path, kind, f'{field}: {alias_bomb(5, width=10)}\n')  # 2.2 million values, aliases expanded
+    message = refused_within_memory(error, load, path, memory=2**20)  # their repr alone: 3 MB
+    assert field in message and ('…' in message or '...' in message), message
+
+
+def test_an_alias_inside_the_value_it_names_is_refused(tmp_path):
+    path = tmp_path / 'motion.yaml'
+    path.write_text(GOOD_MOTION.replace('joint_names: [a, b]', 'joint_names: &names [a, *names]'))
+    with pytest.raises(MotionError, match="the alias 'names' is inside the value it names"):
+        load_motion(path)
+
+
+@pytest.mark.parametrize('kind', ['motion', 'campaign'])
+def test_a_data_file_larger_than_its_bound_is_refused_before_it_is_read(tmp_path, kind, monkeypatch):
+    load, error, _ = LOADERS[kind]
+    path = tmp_path / f'{kind}.yaml'
+    with path.open('wb') as file:  # sparse: no disk taken
+        file.truncate(MAX_FILE_BYTES + 1)
+    monkeypatch.setattr(files.DataLoader, 'get_single_data', lambda self: pytest.fail('the file was parsed'))
+    with pytest.raises(error, match=f'holds {MAX_FILE_BYTES + 1} bytes, more than the {MAX_FILE_BYTES}'):
+        load(path)
+
+
+def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
+    path = tmp_path / 'motion.yaml'
+    os.mkfifo(path)
+
+    def unblock():  # a reader that waits for a writer would otherwise wait for ever
+        with open(path, 'wb'):
+            pass
+
+    guard = threading.Timer(30.0, unblock)
+    guard.start()
+    try:
+        with pytest.raises(MotionError, match='is not a regular file'):
+            load_motion(path)
+    finally:
+        guard.cancel()
+
+
+def waypoint_file(count: int, joints: int = 1) -> str:
+    names = ', '.join(f'j{i}' for i in range(joints))
+    zeros = ', '.join(['0.5'] * joints)
+    return f'joint_names: [{names}]\npoints:\n' + ''.join(
+        f'  - {{positions: [{zeros}], time_from_start: {k / 100!r}}}\n' for k in range(count))
+
+
+def test_a_motion_of_the_most_points_loads_and_one_more_is_refused_naming_points(tmp_path):
+    path = tmp_path / 'motion.yaml'
+    path.write_text(waypoint_file(MAX_POINTS))
+    tracemalloc.start()
+    try:
+        motion = load_motion(path).motion
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(motion.times) == MAX_POINTS and motion.duration == (MAX_POINTS - 1) / 100
+    # PyYAML's nodes took 1 GB for a file of this size; the values themselves, a small multiple of the file.
+    assert peak < 40 * path.stat().st_size, (peak, path.stat().st_size)
+    path.write_text(waypoint_file(MAX_POINTS + 1))
+    with pytest.raises(MotionError, match=f'points holds {MAX_POINTS + 1} points, more than the {MAX_POINTS}'):
+        load_motion(path)
+    with pytest.raises(MotionError, match=f'{MAX_POINTS + 1} points, more than the {MAX_POINTS}'):
+        WaypointMotion(np.arange(MAX_POINTS + 1) / 100, np.zeros((MAX_POINTS + 1, 1)))
+
+
+def test_a_motion_of_more_joints_than_the_bound_is_refused_naming_joint_names(tmp_path):
+    path = tmp_path / 'motion.yaml'
+    count = MAX_JOINTS + 1
+    path.write_text(f'joint_names: [{", ".join(f"j{i}" for i in range(count))}]\nduration: 1.0\nprofile: bang_bang\n'
+                    f'start: [{", ".join(["0.0"] * count)}]\ngoal: [{", ".join(["1.0"] * count)}]\n')
+    with pytest.raises(MotionError, match=f'joint_names names {count} joints, more than the {MAX_JOINTS}'):
+        load_motion(path)
+
+
+def test_a_campaign_of_more_jobs_than_the_bound_is_refused_before_any_job_is_built(tmp_path, monkeypatch):
+    motions = ''.join(f'  - {{name: m{i}, trajectory: 1}}\n' for i in range(MAX_JOBS // 2 + 1))
+    path = tmp_path / 'campaign.yaml'
+    path.write_text(f'index: I\nlaws: [computed_torque, pd_gravity]\nmotions:\n{motions}')
+    monkeypatch.setattr(campaign, '_job', lambda *arguments: pytest.fail('a job was built'))
+    with pytest.raises(CampaignError, match=f'{MAX_JOBS + 2} jobs .* more than the {MAX_JOBS} a campaign may run'):
+        load_campaign(path)
+
+
+def test_a_campaign_number_beyond_a_float_is_refused_naming_it(tmp_path):
+    path = tmp_path / 'campaign.yaml'
+    path.write_text('index: I\nlaws: [pd_gravity]\nperiod: 1' + '0' * 400 + '\n')
+    with pytest.raises(CampaignError, match='period: must be a finite number'):
+        load_campaign(path)
+
+
+def write_bag(path, topic: str, msgtype: str, messages: list):
+    with Writer(path, version=9) as writer:
+        connection = writer.add_connection(topic, msgtype, typestore=TYPESTORE)
+        for k, message in enumerate(messages):
+            writer.write(connection, 1_000_000 * (k + 1), TYPESTORE.serialize_cdr(message, msgtype))
+    return path
+
+
+def joint_state(k: int, names: list, position) -> JointState:
+    return JointState(header=Header(stamp=Time(sec=1, nanosec=10_000_000 * k), frame_id=''), name=names,
+                      position=np.asarray(position, dtype=float), velocity=EMPTY, effort=EMPTY)
+
+
+def test_a_bag_whose_metadata_holds_aliases_is_refused_by_score_and_motion(tmp_path, capsys):
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:  # every topic of an episode, marked complete
+        writer.close(complete=True)
+    metadata = (bag / 'metadata.yaml').read_text()
+    assert '  custom_data:\n' in metadata
+    # What publishes each topic, a JSON text in a bag ddarm writes: here a list of 9^10 values.
+    (bag / 'metadata.yaml').write_text(metadata.replace('  custom_data:\n', '  custom_data:\n'
+                                                        f'    ddarm.publishers: {alias_bomb(9)}\n'))
+    message = refused_within_memory(BagError, score_bag, bag)
+    assert message.startswith(f'{bag}: ') and 'anchor or alias' in message
+    message = refused_within_memory(MotionError, from_bag.motion_file_from_bag, bag)
+    assert message.startswith(f'{bag}: ') and 'anchor or alias' in message
+    assert main(['score', str(bag)]) == 2
+    assert 'anchor or alias' in capsys.readouterr().err
+
+
+def test_a_topic_of_more_messages_than_the_bound_is_refused_as_they_are_counted(tmp_path, monkeypatch):
+    bag = write_bag(tmp_path / 'bag', '/joint_states', JOINT_STATE,
+                    [joint_state(k, ['a'], [0.1 * k]) for k in range(5)])
+    monkeypatch.setattr(from_bag, 'MAX_TOPIC_MESSAGES', 4)
+    with pytest.raises(MotionError, match='/joint_states holds more than 4 messages'):
+        from_bag.motion_file_from_bag(bag)
+
+
+def test_bag_messages_of_more_joints_than_the_bound_are_refused_at_once(tmp_path):
+    names = [f'j{i}' for i in range(2000)]  # the old per-joint list searches were quadratic in this
+    states = write_bag(tmp_path / 'states', '/joint_states', JOINT_STATE,
+                       [joint_state(k, names, np.full(len(names), 0.1 * k)) for k in range(3)])
+    with pytest.raises(MotionError, match=f'2000 joints.* more than the {MAX_JOINTS}'):
+        from_bag.motion_file_from_bag(states)
+    points = [Point(positions=np.full(len(names), float(k)), velocities=EMPTY, accelerations=EMPTY, effort=EMPTY,
+                    time_from_start=Duration(sec=k, nanosec=0)) for k in range(2)]
+    trajectory = write_bag(tmp_path / 'trajectory', '/reference', JOINT_TRAJECTORY, [JointTrajectory(
+        header=Header(stamp=Time(sec=0, nanosec=0), frame_id=''), joint_names=names, points=points)])
+    with pytest.raises(MotionError, match=f'names 2000 joints, more than the {MAX_JOINTS}'):
+        from_bag.motion_file_from_bag(trajectory)
+
+
+def test_ddarm_motion_takes_the_reference_ddarm_itself_recorded(tmp_path, capsys):
+    from rclpy.serialization import serialize_message
+
+    from ddarm.episodes.spec import EpisodeSpec, plan_episode
+    from ddarm.ros.interface import reference_msg
+
+    plan = plan_episode(EpisodeSpec(controller='computed_torque', kp=(900.0,) * 3, kv=(60.0,) * 3))
+    assert np.any(plan.a_ref[-1] != 0.0)  # the bang-bang's deceleration, at T
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:
+        writer.write('/reference', 0, serialize_message(reference_msg(list(plan.joint_names), plan.times, plan.q_ref,
+                                                                       plan.v_ref, plan.a_ref, plan.nominal)))
+        writer.close(complete=True)
+    out = tmp_path / 'reference.yaml'
+    assert main(['motion', str(bag), '--topic', '/reference', '--out', str(out)]) == 0
+    assert f'{len(plan.times)} points of 3 joints' in capsys.readouterr().out
+    motion = load_motion(out).motion
+    q, v, _ = motion.sample(plan.times)
+    np.testing.assert_allclose(q, plan.q_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(v, plan.v_ref, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(motion.accelerations[-1], plan.a_ref[-1])  # as recorded, the last segment's end
+
+
+class SilentListener:
+    """A TCP port on 127.0.0.1 that accepts connections and never answers (a port of some other service)."""
+
+    def __init__(self, reply: bytes = b'') -> None:
+        self.server = socket.create_server(('127.0.0.1', 0))
+        self.port = self.server.getsockname()[1]
+        self.reply, self.connections = reply, []
+        threading.Thread(target=self.serve, daemon=True).start()
+
+    def serve(self) -> None:
+        while True:
+            try:
+                connection, _ = self.server.accept()
+            except OSError:
+                return
+            self.connections.append(connection)
+            if self.reply:
+                connection.sendall(self.reply)
+
+    def close(self) -> None:
+        self.server.close()
+        for connection in self.connections:
+            connection.close()
+
+
+@pytest.mark.parametrize('reply', [b'', b'HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n'])
+def test_ray_refuses_an_address_where_something_that_is_not_ray_listens(monkeypatch, reply):
+    if importlib.util.find_spec('ray') is None:  # not imported here: RayCluster sets its switch first
+        pytest.skip('Ray is not installed (pip install .[ray])')
+    from ddarm.tuning.cluster import LOOPBACK_SWITCH, ClusterError, RayCluster
+
+    monkeypatch.setenv(LOOPBACK_SWITCH, os.environ.get(LOOPBACK_SWITCH, '0'))  # as RayCluster sets it; restored after
+    listener = SilentListener(reply)
+    try:
+        with pytest.raises(ClusterError, match=f"--ray 127.0.0.1:{listener.port}: something listens there, but it "
+                                               "does not answer as a Ray cluster's GCS"):
+            RayCluster(f'127.0.0.1:{listener.port}')
+    finally:
+        listener.close()
