@@ -309,6 +309,9 @@ def test_a_stopped_campaign_leaves_its_run_folder_marked_interrupted_with_the_jo
     monkeypatch.setattr(campaign, 'check_job', stopped_after_one)
     assert main(['campaign', str(write(tmp_path, TINY)), '--out', str(tmp_path / 'run'), '--jobs', '1']) == 130
     summary = json.loads((tmp_path / 'run' / 'summary.json').read_text())
-    assert summary['status'] == 'interrupted' and [record['name'] for record in summary['jobs']] == [
-        'paper.t1.computed_torque.nominal']
+    # The job checked, and the one whose search finished but whose gains were not checked yet.
+    assert summary['status'] == 'interrupted' and [(record['name'], record['status']) for record in summary['jobs']
+                                                   ] == [('paper.t1.computed_torque.nominal', 'ok'),
+                                                         ('paper.t1.pd_gravity.nominal', 'searched')]
+    assert summary['failed'] == [] and summary['jobs'][1]['kp'] and 'bag' not in summary['jobs'][1]
     assert not (tmp_path / 'run' / 'SUMMARY.md').exists()

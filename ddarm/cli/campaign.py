@@ -12,6 +12,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ddarm.cli.reproduce import job_count
+from ddarm.recording.bags import BagError
 from ddarm.reporting.progress import Progress
 
 
@@ -40,6 +41,8 @@ def command_campaign(args: argparse.Namespace) -> int:
     campaign = load_campaign(args.file)  # every job checked: nothing is searched before the file is right
     out = Path(args.out) if args.out else None
     runs, name = (str(out.parent), out.name) if out else ('runs', None)
+    if out and not out.absolute().parent.is_dir():  # the run folder is new, the folder it goes in is not
+        raise BagError(f'--out {out}: the folder {out.absolute().parent} does not exist')
     check_outputs(None, runs, name)
     for warning in campaign.warnings:
         print(f'ddarm campaign: WARNING: {warning}', file=sys.stderr)
@@ -71,18 +74,21 @@ def _campaign_run(args: argparse.Namespace, campaign, runs: str, name: str | Non
     cluster's), each job's gains checked through the ROS graph, the summary written; a stop marks the run
     interrupted."""
     from ddarm.ros.session import GraphSession
-    from ddarm.tuning.campaign import FILE_COPY_NAME, check_jobs, write_summary
+    from ddarm.tuning.campaign import FILE_COPY_NAME, JobRecords, check_jobs, search_record, write_summary
     from ddarm.tuning.outputs import run_folder
 
     done: dict = {}
+    by_name = {job.name: job for job in campaign.jobs}
     with run_folder('campaign', Path(args.file).stem, runs, name, shlex.join(['ddarm', *args.argv])) as run:
         run.write_text(FILE_COPY_NAME, campaign.text)
+        records = JobRecords(run, campaign)
         with Progress(sum(job.total for job in jobs), f'{len(jobs)} searches', quiet=args.json) as bar:
             def progress(job, episodes, best) -> None:
                 done[job.key] = episodes
                 bar.update(sum(done.values()))
 
             def finished(job, found) -> None:
+                records.add(search_record(by_name[job.key], found))  # a search done is kept, whatever comes next
                 progress(job, job.total, None)
                 if not args.json:
                     tqdm.write(f'  {job.label}: ' + (
@@ -101,8 +107,9 @@ def _campaign_run(args: argparse.Namespace, campaign, runs: str, name: str | Non
             print("checking each job's gains through the ROS graph (lockstep), recorded …", file=sys.stderr, flush=True)
         # One session for every job: its nodes restart only for another law or arm.
         with GraphSession(run.path / 'nodes') as session:
-            records = check_jobs(session, run, campaign, found, args.storage, on_record=checked)
-        return write_summary(run, campaign, records), run.path
+            checked_records = check_jobs(session, run, campaign, found, args.storage, on_record=checked,
+                                         records=records)
+        return write_summary(run, campaign, checked_records), run.path
 
 
 def print_campaign(summary: dict, path: Path) -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from ddarm.cli.arguments import finite
 
@@ -13,17 +12,20 @@ def command_motion(args: argparse.Namespace) -> int:
     from ddarm.motion.files import parse_motion
     from ddarm.motion.from_bag import motion_file_from_bag
     from ddarm.motion.programmed import MotionError
+    from ddarm.recording.bags import BagError, checked_output_path
+    from ddarm.recording.runs import write_new_text
 
-    out = Path(args.out)
-    # Checked before the bag is read, so a long read never ends in a refusal it could have started with.
-    if out.exists() or out.is_symlink():
-        raise MotionError(f'{out} exists already, not overwriting')
-    if not out.parent.is_dir():
+    # Checked before the bag is read, so a long read never ends in a refusal it could have started with: as every
+    # output, new, with no '..' and through no symlink.
+    try:
+        out = checked_output_path(args.out)
+    except BagError as error:
+        raise MotionError(str(error)) from error
+    if not out.absolute().parent.is_dir():
         raise MotionError(f'{out}: no folder {out.parent} to write it in')
     text = motion_file_from_bag(args.bag, args.topic, args.joints, args.start, args.end)
     written = parse_motion(text, str(out))
-    with out.open('x') as file:  # 'x': a file made there meanwhile is not overwritten either
-        file.write(text)
+    write_new_text(out, text)
     print(f'{out}: {len(written.motion.times)} points of {len(written.joint_names)} joints '
           f'({", ".join(written.joint_names)}), {written.motion.duration!r} s')
     return 0

@@ -36,6 +36,10 @@ def _checked_yaml_dir(text: str | None) -> Path | None:
         raise ParetoError(f'--yaml-dir {path}: the folder exists and is not empty; give a new or empty one')
     if not path.exists() and not path.absolute().parent.is_dir():
         raise ParetoError(f'--yaml-dir {path}: the folder {path.absolute().parent} does not exist')
+    try:  # as every output: no '..' in it and no symlink on the way (each point's file is new, 'x' when written)
+        checked_output_path(path / 'point-00.yaml')
+    except BagError as error:
+        raise ParetoError(f'--yaml-dir {error}') from error
     return path
 
 
@@ -127,7 +131,7 @@ def _optimum_entry(tuning, on_front: bool, args: argparse.Namespace, front: list
 
 def write_front_yamls(folder: Path, template, front: list[dict], joint_names: list[str], command: str) -> list[str]:
     """Each front point's controller YAML in `folder` (created if new), point-00.yaml at least I1 onwards."""
-    from ddarm.recording.runs import controller_yaml
+    from ddarm.recording.runs import controller_yaml, write_new_text
 
     folder.mkdir(exist_ok=True)
     width = max(2, len(str(len(front) - 1)))
@@ -138,9 +142,7 @@ def write_front_yamls(folder: Path, template, front: list[dict], joint_names: li
         text = controller_yaml(template.controller, point['kp'], point['kv'], template.delay, template.period,
                                provenance, joint_names=joint_names, urdf=template.model_urdf or template.urdf,
                                motion=template.motion, duration=template.duration)
-        path = folder / f'point-{rank:0{width}d}.yaml'
-        path.write_text(text)
-        written.append(str(path))
+        written.append(str(write_new_text(folder / f'point-{rank:0{width}d}.yaml', text)))
     return written
 
 
@@ -194,6 +196,9 @@ def front_figure(path: Path, report: dict) -> None:
     from matplotlib.figure import Figure
     from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
+    from ddarm.recording.runs import write_new_file
+    from ddarm.reporting.text import figure_text
+
     figure = Figure(figsize=(7.5, 5.5), dpi=120)
     FigureCanvasAgg(figure)
     axis = figure.subplots()
@@ -225,11 +230,11 @@ def front_figure(path: Path, report: dict) -> None:
     axis.set_ylabel('I2, torque deviation from nominal')
     spec = report['spec']
     motion = Path(spec['motion']).name if spec.get('motion') else f"trajectory {spec['trajectory']}"
-    axis.set_title(f"{report['controller']}, {motion}: {report['episodes']} episodes")
+    axis.set_title(figure_text(f"{report['controller']}, {motion}: {report['episodes']} episodes"), parse_math=False)
     axis.grid(True, which='both', alpha=0.3)
     axis.legend(fontsize=8)
     figure.tight_layout()
-    figure.savefig(path)
+    write_new_file(path, lambda file: figure.savefig(file, format=path.suffix[1:].lower()))
 
 
 def print_front(report: dict) -> None:

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
+import dataclasses
 import shlex
 import sys
 
 from ddarm.cli.arguments import episode_spec, finite
-from ddarm.cli.output import format_vector
+from ddarm.cli.output import format_vector, print_json
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
-from ddarm.episodes.spec import check_episode
+from ddarm.episodes.spec import check_episode, gains_from_omega, loop_stability_warnings
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.robust import AGGREGATES
 
@@ -68,6 +68,11 @@ def command_tune(args: argparse.Namespace) -> int:
     template = episode_spec(args)
     for warning in check_episode(template).warnings:  # refusals first: nothing is searched before they are fixed
         print(f'ddarm tune: WARNING: {warning}', file=sys.stderr)
+    for omega in args.omegas:
+        kp, kv = gains_from_omega(template, omega)
+        start = dataclasses.replace(template, kp=tuple(kp), kv=tuple(kv))
+        for warning in loop_stability_warnings(start, f'the ω-rule start gains at ω = {omega:g}'):
+            print(f'ddarm tune: WARNING: {warning}', file=sys.stderr)
     scenarios = robust_scenarios(args, template)
     objective = args.objective or 'worst'
     progress = None if args.json else sys.stderr
@@ -80,6 +85,9 @@ def command_tune(args: argparse.Namespace) -> int:
     with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
         tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed, progress=bar.update,
                       scenarios=scenarios, aggregate=objective)
+    best_gains = dataclasses.replace(template, kp=tuple(tuning.search.kp), kv=tuple(tuning.search.kv))
+    tuning = dataclasses.replace(tuning, warnings=tuple(tuning.warnings) + tuple(loop_stability_warnings(
+        best_gains, 'the tuned gains')))
     # Only now: a refused search leaves nothing behind.
     with run_folder('tune', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
         best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
@@ -92,7 +100,7 @@ def command_tune(args: argparse.Namespace) -> int:
         report = finish_tuning(run, template, best_spec, tuning, scored, index=args.index, method=args.method,
                                seed=args.seed, out=args.out)
     if args.json:
-        print(json.dumps(report))
+        print_json(report)
     else:
         print_tuning(report, tuning)
     return 0 if report['agree'] else 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 from pathlib import Path
 
 from ddarm.control.laws import CONTROLLERS
@@ -19,7 +20,9 @@ from ddarm.paper.schema import Results, Table4Row
 from ddarm.paper.settings import Case, PaperSettings, paper_settings
 from ddarm.paper.tables import case_text, number
 from ddarm.recording.bags import read_episode_bag
+from ddarm.recording.runs import write_new_text
 from ddarm.reporting.html import markdown_to_html
+from ddarm.reporting.text import markdown_code, markdown_text
 
 
 class ReportError(DdarmError, ValueError):
@@ -39,16 +42,18 @@ def tracking_row(results: Results, controller: str, case: Case) -> Table4Row:
 def _header(results: Results, out: Path) -> str:
     quick = ('**quick** (`--quick`: small search budgets, so the minima are looser than a full run\'s; '
              'compare a full run with the paper)' if results.quick else 'full')
-    settings = '; '.join(f'{key} = `{json.dumps(value)}`' for key, value in typed.write(results.settings).items())
+    settings = '; '.join(f'{markdown_text(key)} = {markdown_code(json.dumps(value))}'
+                         for key, value in typed.write(results.settings).items())
     example = next((row.bag for row in results.table4), 'bags/<episode>')
+    rescore = f'cd {shlex.quote(str(out))} && ddarm score {shlex.quote(example)}'
     return f"""# Reproduction: the choice of feedback gains for a direct-drive manipulator (Kowalska)
 
-- Command: `{results.command}`
-- Started {results.started}; wall time {number(results.wall_time_s, 4)} s; run: {quick}
+- Command: {markdown_code(results.command)}
+- Started {markdown_text(results.started)}; wall time {number(results.wall_time_s, 4)} s; run: {quick}
 - Settings: {settings}
 - Every figure of ours in the tables below was scored from the bag of the episode it links to (paths
   relative to this folder), recorded as the episode ran through the ROS graph. Re-score any of them
-  with `ddarm score <bag>`, e.g. `cd {out} && ddarm score {example}` (`--json` prints every field).
+  with `ddarm score <bag>`, e.g. {markdown_code(rescore)} (`--json` prints every field).
 - "paper" columns: the paper's Tables 2-4 (docs/model-specification.md §10); — where the paper gives no
   figure.
 - Indices (docs/model-specification.md §8): I1 = (2.5) = (1/k_max) Σ_j Σ_i |e_i(jΔ)| with e in degrees;
@@ -63,12 +68,12 @@ def _claims(results: Results) -> str:
              'absolute figures may differ from the paper\'s.', '']
     for claim in results.claims:
         verdict = 'REPRODUCED' if claim.reproduced else 'NOT REPRODUCED'
-        lines.append(f'- **{verdict}**: {claim.claim}  \n  Evidence: {claim.evidence}')
+        lines.append(f'- **{verdict}**: {markdown_text(claim.claim)}  \n  Evidence: {markdown_text(claim.evidence)}')
     return '\n'.join(lines) + '\n'
 
 
 def _reconstruction(results: Results) -> str:
-    notes = '\n'.join(f'- {note}' for note in results.reconstruction)
+    notes = '\n'.join(f'- {markdown_text(note)}' for note in results.reconstruction)
     return f"""## Reconstruction notes
 
 The paper's figures with the arm's dimensions (Fig. 3) and trajectory 1's initial configuration (Fig. 4)
@@ -153,6 +158,6 @@ def write_report(out: Path, results: Results) -> list[Path]:
                 tables.table3(results, cells, settings), tables.table4(results, cells), tables.gains(results, cells),
                 tables.section2(results, cells, settings), tables.beyond(results, cells, settings),
                 _reconstruction(results), _figures_section(settings)]
-    report.write_text('\n'.join(sections))
+    write_new_text(report, '\n'.join(sections))
     markdown_to_html(report, out / 'report.html')
     return [report, *written]

@@ -5,16 +5,46 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
+import sys
 import time
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import yaml
 
 from ddarm.episodes.indices import INDICES
+from ddarm.errors import DdarmError
 from ddarm.recording.bags import BagError, checked_output_path, child_path
 from ddarm.interrupts import Interrupted, critical_section
 
 DEFAULT_ROOT = Path('runs')
+SUMMARY_NAME = 'summary.json'
+
+
+def write_new_file(path: Path | str, write: Callable[[BinaryIO], None]) -> Path:
+    """Make the new file `path` (checked_output_path: no '..', no symlink, not there yet) and `write` into it.
+
+    A file that cannot be written whole (a full disk, a quota) is removed, so no part of it passes for the
+    output, and the BagError names it: an OSError raised while writing would not (only opening names its file).
+    """
+    path = checked_output_path(path)
+    try:
+        file = path.open('xb')  # 'x': a file made there meanwhile is not overwritten either
+    except OSError as error:
+        raise BagError(f'{path}: cannot write it: {error.strerror or error}') from error
+    try:
+        with file:
+            write(file)
+    except OSError as error:
+        path.unlink(missing_ok=True)
+        raise BagError(f'{path}: cannot write it: {error.strerror or error}') from error
+    return path
+
+
+def write_new_text(path: Path | str, text: str) -> Path:
+    """write_new_file of `text` as UTF-8."""
+    return write_new_file(path, lambda file: file.write(text.encode('utf-8')))
 
 
 def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenance: str, *,
@@ -62,7 +92,7 @@ class RunFolder:
         root = Path(root)
         self.path = self.checked_path(name, root)
         try:
-            root.mkdir(parents=True, exist_ok=True)
+            root.mkdir(exist_ok=True)  # its own folder exists (checked_root): a mistyped path grows no tree
             self.path.mkdir()
         except OSError as error:
             raise BagError(f'cannot create the run folder {self.path}: {error.strerror}') from error
@@ -71,7 +101,7 @@ class RunFolder:
         self.finished = False
         self.log = logging.getLogger(f'ddarm.run.{name}')
         self.log.setLevel(logging.INFO)
-        self._handler = logging.FileHandler(self.path / 'run.log')
+        self._handler = _RunLog(self.path / 'run.log')
         self._handler.setFormatter(logging.Formatter('%(asctime)s %(levelname)s %(message)s'))
         self.log.addHandler(self._handler)
         self.log.info('run %s: %s', name, command)
@@ -83,12 +113,15 @@ class RunFolder:
 
     @staticmethod
     def checked_root(root: Path | str = DEFAULT_ROOT) -> Path:
-        """A folder that can hold run folders (it may not exist yet); refused before any work otherwise."""
+        """A folder that can hold run folders: one that exists, or a new one in a folder that exists (as `runs`
+        in a fresh checkout); refused before any work otherwise."""
         root = Path(root)
         if root.is_symlink():
             raise BagError(f'{root} is a symlink; refusing to write through it')
         if root.exists() and not root.is_dir():
             raise BagError(f'{root} is not a folder: it cannot hold run folders')
+        if not root.exists() and not root.absolute().parent.is_dir():
+            raise BagError(f'{root}: the folder {root.absolute().parent} does not exist')
         return root
 
     @classmethod
@@ -112,16 +145,25 @@ class RunFolder:
         self._write_summary()
 
     def write_text(self, name: str, text: str) -> Path:
-        path = checked_output_path(self.path / name)
-        path.write_text(text)
+        path = write_new_text(self.path / name, text)
         self.log.info('wrote %s', path)
         return path
+
+    def discard_bag(self, path: Path) -> None:
+        """Remove this run's bag at `path`, left unfinished by a failing file system: no scorer accepts it, and the
+        space it holds is what lets the summary still say how the run ended."""
+        if not path.resolve().is_relative_to((self.path / 'bags').resolve()):
+            raise BagError(f'{path} is not a bag of the run folder {self.path}')
+        shutil.rmtree(path, ignore_errors=True)
+        self.log.info('removed the unfinished bag %s', path)
 
     def finish(self, status: str, **extra) -> None:
         if self.finished:
             return
         with critical_section():  # the summary's last word is written whole, whatever signal comes
             self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
+            if self._handler.failure:
+                self.summary['log_failure'] = self._handler.failure
             self._write_summary()
             self.log.info('run %s', status)
             self._close_log()
@@ -145,9 +187,36 @@ class RunFolder:
                 self.log.error('%s: %s', kind.__name__, error)
                 self.finish('failed', error=f'{kind.__name__}: {error}')
         except Exception as cleanup:
+            if isinstance(error, (DdarmError, OSError)) and isinstance(cleanup, DdarmError):
+                # Said on the same line as the failure: the summary left behind still claims the run is running.
+                reason = (f'{error.filename}: {error.strerror}' if isinstance(error, OSError) and error.filename
+                          else str(error))
+                raise BagError(f'{reason}; and the run could not be marked failed: {cleanup}') from error
             error.add_note(f'while marking the run folder {self.path}: {type(cleanup).__name__}: {cleanup}')
 
     def _write_summary(self) -> None:
-        partial = self.path / 'summary.json.partial'
-        partial.write_text(json.dumps(self.summary, indent=2))
-        partial.replace(self.path / 'summary.json')  # atomic: a reader never sees half a summary
+        summary, partial = self.path / SUMMARY_NAME, self.path / f'{SUMMARY_NAME}.partial'
+        try:
+            partial.write_text(json.dumps(self.summary, indent=2))
+            partial.replace(summary)  # atomic: a reader never sees half a summary
+        except OSError as error:
+            partial.unlink(missing_ok=True)
+            raise BagError(f'{summary}: cannot write the summary: {error.strerror or error}') from error
+
+
+class _RunLog(logging.FileHandler):
+    """run.log, whose failure to take a line (a full disk) goes into the summary as `log_failure`, not onto the
+    terminal as logging's traceback over the command's own message."""
+
+    failure: str | None = None
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 (logging's name)
+        if self.failure is None:
+            error = sys.exc_info()[1]
+            self.failure = f'{self.baseFilename}: cannot write the log: {getattr(error, "strerror", None) or error}'
+
+    def close(self) -> None:
+        try:  # closing flushes, and a flush that fails is one more line lost, not a reason to stop
+            super().close()
+        except OSError:
+            self.handleError(None)

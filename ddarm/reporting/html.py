@@ -5,6 +5,11 @@ embedded as a base64 data: URI and a short inline style sheet; it loads nothing 
 scripts, no network). Links to local files that are not embedded (bags/..., results.json) stay relative
 links, re-rooted at the page's folder. A link or image whose target is missing is refused by name before
 anything is written, so a page once written has no broken reference.
+
+Raw HTML in the Markdown is shown as text, never passed through: a name from a URDF that reads
+`<meta http-equiv="refresh" …>` would otherwise navigate the reader's browser (no Content-Security-Policy
+stops a meta refresh). The report writers also escape every text from a file (ddarm.reporting.text), so that
+report.md reads right in any Markdown viewer.
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import base64
 import html
 import mimetypes
 import os
+import secrets
 from pathlib import Path
 from urllib.parse import quote, unquote, urlsplit, urlunsplit
 
@@ -38,7 +44,7 @@ pre { background: #f2f2f2; padding: 0.6rem; overflow-x: auto; }
 pre code { padding: 0; }
 """
 
-# The policy makes "loads nothing else" hold in the browser too: even raw HTML in the Markdown cannot fetch.
+# The policy makes "loads nothing else" hold in the browser too, should any HTML ever get past the escaping.
 PAGE = """<!DOCTYPE html>
 <html lang="en">
 <head>
@@ -57,9 +63,14 @@ PAGE = """<!DOCTYPE html>
 """
 
 
+# Links that leave the page for the web or for mail; any other scheme (javascript:, data:, file:) is refused.
+LINK_SCHEMES = ('http', 'https', 'mailto')
+
+
 class HtmlReportError(DdarmError, ValueError):
     """A page that cannot be made whole: its Markdown unreadable, a link's or an image's target missing, an image
-    that is not a local image file, or the page unwritable; the text names the file."""
+    that is not a local image file, a link of another scheme than LINK_SCHEMES, or the page unwritable; the text
+    names the file."""
 
 
 def markdown_to_html(markdown_path: Path | str, html_path: Path | str, title: str | None = None) -> Path:
@@ -67,15 +78,17 @@ def markdown_to_html(markdown_path: Path | str, html_path: Path | str, title: st
 
     Relative links and images are read relative to the Markdown's folder. Images are embedded (a local
     image file, or a data: URI as it is); links to local files or folders become relative to the page's
-    folder; links with a scheme (https:, mailto:) and links within the page (#anchor) are kept as written.
-    Raw HTML in the Markdown is passed through unchecked. `title` defaults to the first level-1 heading's
-    text, else the Markdown file's name. `html_path` is replaced if it exists: it is derived from the
-    Markdown, so a stale page is rendered again; its folder must exist.
+    folder; links of LINK_SCHEMES (https:, mailto:) and links within the page (#anchor) are kept as written.
+    Raw HTML in the Markdown is shown as the text it is. `title` defaults to the first level-1 heading's
+    text, else the Markdown file's name. `html_path` is replaced if it exists (the new page is moved over
+    it whole, so a symlink there is replaced, not followed): it is derived from the Markdown, so a stale
+    page is rendered again; its folder must exist.
 
     Raises:
         HtmlReportError (a ValueError): the Markdown file cannot be read, a link or image names a local
             file that does not exist, an image is not an image file, an image is not local (the page
-            must open offline), or the page cannot be written. No page is written then.
+            must open offline), a link has another scheme than LINK_SCHEMES, or the page cannot be
+            written. No page, and no part of one, is written then.
     """
     source, page = Path(markdown_path), Path(html_path)
     try:
@@ -85,14 +98,27 @@ def markdown_to_html(markdown_path: Path | str, html_path: Path | str, title: st
     except UnicodeDecodeError as error:
         raise HtmlReportError(f'{source}: cannot read the report: not UTF-8 text ({error.reason})') from error
     renderer = markdown.Markdown(extensions=['tables', 'fenced_code', 'toc', _LocalTargets(source, page.parent)])
+    # Without these two, an HTML block or an inline tag would reach the page as markup; now it is text, escaped.
+    renderer.preprocessors.deregister('html_block')
+    renderer.inlinePatterns.deregister('html')
     body = renderer.convert(text)
     if title is None:
         # toc's names are the headings' text, HTML-escaped, with inline markup such as `code` removed.
         heading = next((token['name'] for token in renderer.toc_tokens if token['level'] == 1), None)
         title = html.unescape(heading) if heading else source.name
+    content = PAGE.format(title=html.escape(title), style=STYLE, body=body).encode('utf-8')
+    # A new name of its own ('x': never one made meanwhile), moved over the page once whole.
+    partial = page.with_name(f'.{page.name}.{secrets.token_hex(8)}.partial')
     try:
-        page.write_text(PAGE.format(title=html.escape(title), style=STYLE, body=body), encoding='utf-8')
+        file = partial.open('xb')
     except OSError as error:
+        raise HtmlReportError(f'{page}: cannot write the page: {error.strerror}') from error
+    try:
+        with file:
+            file.write(content)
+        partial.replace(page)
+    except OSError as error:
+        partial.unlink()
         raise HtmlReportError(f'{page}: cannot write the page: {error.strerror}') from error
     return page
 
@@ -147,6 +173,10 @@ class _TargetRewriter(Treeprocessor):
         return f'data:{mime};base64,{base64.b64encode(target.read_bytes()).decode("ascii")}'
 
     def _relinked(self, reference: str) -> str:
+        scheme = urlsplit(reference).scheme
+        if scheme and scheme.lower() not in LINK_SCHEMES:
+            raise HtmlReportError(f'{self.source}: link {reference!r}: a {scheme}: link, and a report links only '
+                                  f'local files and {", ".join(f"{name}:" for name in LINK_SCHEMES)} addresses')
         target = self._local_target('link', reference)
         if target is None:
             return reference

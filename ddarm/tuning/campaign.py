@@ -11,13 +11,17 @@ and scores the episodes (the graph session).
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
+import math
 import re
+import sqlite3
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
+from urllib.parse import quote
 
-import numpy as np
 import yaml
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -27,10 +31,11 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
-from ddarm.motion.files import DataLoader
+from ddarm.motion.files import DataFileError, DataLoader, read_data_file, shown
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
-from ddarm.recording.runs import RunFolder
+from ddarm.recording.runs import RunFolder, write_new_file
+from ddarm.reporting.text import figure_text, markdown_text
 from ddarm.tuning.jobs import Job
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 from ddarm.tuning.outputs import AGREEMENT, relative_difference, write_gains
@@ -48,6 +53,9 @@ SCENARIO_KEYS = ('name', 'tau', 'mass_scale', 'external_torque', 'viscous_fricti
 JOB_KEYS = ('name', 'arm', 'motion', 'law', 'scenario', *OPTION_KEYS)
 # A name becomes part of a job's name and so of its bag's and gains file's names: one plain word each.
 NAME = re.compile(r'[A-Za-z0-9][A-Za-z0-9_+-]*')
+# A campaign's jobs, the product's and the listed ones: each is checked (its episode planned) before any search, and
+# each runs a search of its budget; far beyond any campaign run, and refused before the first is built.
+MAX_JOBS = 1000
 SUMMARY_NAME, TABLE_NAME, PLOT_NAME, FILE_COPY_NAME = 'summary.json', 'SUMMARY.md', 'index-per-job.png', 'campaign.yaml'
 
 
@@ -115,6 +123,13 @@ def search_jobs(campaign: Campaign) -> list[Job]:
             for job in campaign.jobs]
 
 
+def _finite(number: int | float) -> bool:
+    try:
+        return math.isfinite(number)
+    except OverflowError:  # an integer beyond a float's range
+        return False
+
+
 class _Reader:
     """Reads one campaign file's values, each refusal naming the file and where in it (`jobs[2].arm.urdf`)."""
 
@@ -126,27 +141,27 @@ class _Reader:
 
     def mapping(self, where: str, data, keys: tuple[str, ...]) -> dict:
         if not isinstance(data, dict):
-            self.fail(where, f'must be a mapping of {", ".join(keys)}, got {data!r}')
+            self.fail(where, f'must be a mapping of {", ".join(keys)}, got {shown(data)}')
         for key in data:
             if key not in keys:
-                self.fail(where, f'unknown key {key!r} (known: {", ".join(keys)})')
+                self.fail(where, f'unknown key {shown(key)} (known: {", ".join(keys)})')
         return data
 
     def items(self, where: str, data) -> list:
         if not isinstance(data, list) or not data:
-            self.fail(where, f'must be a non-empty list, got {data!r}')
+            self.fail(where, f'must be a non-empty list, got {shown(data)}')
         return data
 
     def number(self, where: str, value, *, positive: bool = False, non_negative: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            self.fail(where, f'must be a finite number, got {value!r}')
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
+            self.fail(where, f'must be a finite number, got {shown(value)}')
         if positive and value <= 0 or non_negative and value < 0:
-            self.fail(where, f'must be {"positive" if positive else "at least 0"}, got {value!r}')
+            self.fail(where, f'must be {"positive" if positive else "at least 0"}, got {shown(value)}')
         return float(value)
 
     def whole(self, where: str, value, minimum: int) -> int:
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            self.fail(where, f'must be a whole number of at least {minimum}, got {value!r}')
+            self.fail(where, f'must be a whole number of at least {minimum}, got {shown(value)}')
         return value
 
     def numbers(self, where: str, value, *, scalar: bool = False, positive: bool = False) -> tuple[float, ...]:
@@ -158,18 +173,18 @@ class _Reader:
 
     def choice(self, where: str, value, choices: tuple) -> str:
         if not isinstance(value, str) or value not in choices:
-            self.fail(where, f'must be one of {", ".join(choices)}, got {value!r}')
+            self.fail(where, f'must be one of {", ".join(choices)}, got {shown(value)}')
         return value
 
     def name(self, where: str, value) -> str:
         if not isinstance(value, str) or not NAME.fullmatch(value):
             self.fail(where, f'must be a name of letters, digits, _, + and - (starting with a letter or digit), '
-                             f'got {value!r}')
+                             f'got {shown(value)}')
         return value
 
     def file(self, where: str, value) -> str:
         if not isinstance(value, str) or not value:
-            self.fail(where, f'must be a file path, got {value!r}')
+            self.fail(where, f'must be a file path, got {shown(value)}')
         path = (self.path.parent / Path(value).expanduser()).resolve()  # relative paths from the campaign file
         if not path.is_file():
             self.fail(where, f'{path}: no such file')
@@ -223,7 +238,8 @@ class _Reader:
             default = Path(motion['file']).stem
         else:
             if isinstance(data['trajectory'], bool) or data['trajectory'] not in PAPER_TRAJECTORIES:
-                self.fail(f'{where}.trajectory', f'must be one of {PAPER_TRAJECTORIES}, got {data["trajectory"]!r}')
+                self.fail(f'{where}.trajectory',
+                          f'must be one of {PAPER_TRAJECTORIES}, got {shown(data["trajectory"])}')
             motion['trajectory'] = data['trajectory']
             default = f'trajectory-{data["trajectory"]}'
         if 'duration' in data:
@@ -249,18 +265,19 @@ class _Reader:
         return self.choice(where, value, CONTROLLERS)
 
     def distinct(self, where: str, entries: list[dict]) -> None:
-        names = [entry['name'] for entry in entries]
-        for name in names:
-            if names.count(name) > 1:
-                self.fail(where, f'the name {name!r} is given {names.count(name)} times')
+        for name, count in Counter(entry['name'] for entry in entries).items():
+            if count > 1:
+                self.fail(where, f'the name {shown(name)} is given {count} times')
 
 
 def load_campaign(path: Path | str) -> Campaign:
     """The campaign file at `path`, read and every job checked; CampaignError names the key or job refused."""
     path = Path(path)
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
+        text = read_data_file(path)
+    except DataFileError as error:
+        raise CampaignError(f'{path}: cannot read the campaign file: {error}') from None
+    except OSError as error:
         raise CampaignError(f'{path}: cannot read the campaign file: {error}') from error
     return parse_campaign(text, path)
 
@@ -270,37 +287,41 @@ def parse_campaign(text: str, path: Path) -> Campaign:
     reader = _Reader(path)
     try:
         document = yaml.load(text, Loader=DataLoader)  # YAML 1.2 numbers, duplicate keys refused (safe)
-    except (yaml.YAMLError, RecursionError) as error:  # on one line, as every refusal
+    except yaml.YAMLError as error:  # on one line, as every refusal
         raise CampaignError(f'{path}: not a YAML file ddarm reads: {" ".join(str(error).split())}') from error
     if document is None:
         raise CampaignError(f'{path}: empty: a campaign lists laws (with arms, motions, scenarios) and/or jobs')
     document = reader.mapping('the top level', document, TOP_KEYS)
     description = document.get('description', '')
     if not isinstance(description, str):
-        reader.fail('description', f'must be text, got {description!r}')
+        reader.fail('description', f'must be text, got {shown(description)}')
     shared = reader.options('', document)
     if 'laws' not in document and any(key in document for key in ('arms', 'motions', 'scenarios')):
         reader.fail('laws', 'arms, motions and scenarios make jobs only with laws: give laws')
     if 'laws' not in document and 'jobs' not in document:
         reader.fail('the top level', 'no jobs: give laws (with arms, motions and scenarios) and/or jobs')
     parts = []
+    listed = reader.items('jobs', document['jobs']) if 'jobs' in document else []
     if 'laws' in document:
-        axes = {}
-        for key, read, default in (('arms', reader.arm, [{}]), ('motions', reader.motion, [{'trajectory': 1}]),
-                                   ('scenarios', reader.scenario, [{}])):
-            given = reader.items(key, document.get(key, default))
+        axes = {key: (reader.items(key, document.get(key, default)), read) for key, read, default in (
+            ('arms', reader.arm, [{}]), ('motions', reader.motion, [{'trajectory': 1}]), ('scenarios', reader.scenario,
+                                                                                          [{}]))}
+        given_laws = reader.items('laws', document['laws'])
+        _check_job_count(reader, len(listed) + len(given_laws) * math.prod(len(items) for items, _ in axes.values()))
+        for key, (given, read) in axes.items():
             entries = [read(f'{key}[{i}]', item) for i, item in enumerate(given)]
             reader.distinct(key, entries)
             axes[key] = entries
-        laws = [reader.law(f'laws[{i}]', law) for i, law in enumerate(reader.items('laws', document['laws']))]
+        laws = [reader.law(f'laws[{i}]', law) for i, law in enumerate(given_laws)]
         if len(set(laws)) != len(laws):
             reader.fail('laws', f'a law is given twice: {laws}')
         parts += [(f'the job {arm["name"]}.{motion["name"]}.{law}.{scenario["name"]} (of the product)',
                    None, arm, motion, law, scenario, {})
                   for arm in axes['arms'] for motion in axes['motions'] for law in laws
                   for scenario in axes['scenarios']]
+    _check_job_count(reader, len(listed))
     if 'jobs' in document:
-        for i, item in enumerate(reader.items('jobs', document['jobs'])):
+        for i, item in enumerate(listed):
             where = f'jobs[{i}]'
             item = reader.mapping(where, item, JOB_KEYS)
             if 'law' not in item:
@@ -315,7 +336,7 @@ def parse_campaign(text: str, path: Path) -> Campaign:
     for where, name, arm, motion, law, scenario, options in parts:
         job = _job(reader, where, name, arm, motion, law, scenario, {**shared, **options})
         if job.name in seen:
-            reader.fail(where, f'its name {job.name!r} is also that of {seen[job.name]}: give the job a name')
+            reader.fail(where, f'its name {shown(job.name)} is also that of {seen[job.name]}: give the job a name')
         seen[job.name] = where
         try:
             warnings += [f'{job.name}: {warning}' for warning in check_episode(job.template).warnings]
@@ -326,6 +347,12 @@ def parse_campaign(text: str, path: Path) -> Campaign:
             reader.fail(where, str(error))
         jobs.append(job)
     return Campaign(path, text, description, tuple(jobs), tuple(warnings))
+
+
+def _check_job_count(reader: _Reader, count: int) -> None:
+    if count > MAX_JOBS:
+        reader.fail('the top level', f'{count} jobs (arms × motions × laws × scenarios, and those listed), more '
+                                     f'than the {MAX_JOBS} a campaign may run')
 
 
 def _job(reader: _Reader, where: str, name: str | None, arm: dict, motion: dict, law: str, scenario: dict,
@@ -371,15 +398,9 @@ def job_record(job: CampaignJob) -> dict:
             'seed': job.seed, 'omegas': list(job.omegas), 'joint_names': list(arm_joints(job.template)[0])}
 
 
-def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found: JobSearch,
-              storage: str = 'mcap') -> dict:
-    """The job's best gains run once through `recorder`, recorded in the run folder and scored from the bag.
-
-    Returns the job's record: the search's value beside the bag's score, and its status, 'ok' only when the
-    search found gains, the recorded episode did not diverge and the bag agrees with the search (as `ddarm
-    tune` asks before it writes gains, ddarm.tuning.outputs.AGREEMENT); then the gains are written as a
-    controller YAML (gains/<job>.yaml). Otherwise 'failed', with the reason.
-    """
+def search_record(job: CampaignJob, found: JobSearch) -> dict:
+    """The job's record once its search is done: status 'searched' with the search's gains and values (their check
+    through the graph still to come), or 'failed' with why the search found no gains."""
     record = job_record(job)
     if found.tuning is None:
         return {**record, 'status': 'failed', 'reason': f'search: {found.error}'}
@@ -391,11 +412,66 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
                   search_index=tuning.search.index,
                   in_process={key: tuning.best[key] for key in INDICES}, episodes=tuning.search.episodes,
                   search_wall_time_s=tuning.wall_time_s, warnings=list(tuning.warnings), spec=spec.to_dict())
+    return {**record, 'status': 'searched'}
+
+
+class StorageFailure(CampaignError):
+    """The run folder's file system failed while a job's gains were checked (a full disk, a quota, an I/O error):
+    the run's failure, not the job's, as every later job would fail alike. `record` is the job's, failed."""
+
+    def __init__(self, message: str, record: dict) -> None:
+        super().__init__(message)
+        self.record = record
+
+
+# What a failing file system says: no space, no quota left, a file too large, read-only, an I/O error.
+STORAGE_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO))
+
+
+def _storage_failed(error: BaseException) -> bool:
+    """Whether a failing file system is behind `error` (an OSError of STORAGE_ERRNOS, or sqlite's full disk or
+    I/O error, anywhere in its chain of causes)."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, OSError) and error.errno in STORAGE_ERRNOS:
+            return True
+        if isinstance(error, sqlite3.Error) and getattr(error, 'sqlite_errorname', '').startswith(
+                ('SQLITE_FULL', 'SQLITE_IOERR')):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found: JobSearch,
+              storage: str = 'mcap') -> dict:
+    """The job's best gains run once through `recorder`, recorded in the run folder and scored from the bag.
+
+    Returns the job's record: the search's value beside the bag's score, and its status, 'ok' only when the
+    search found gains, the recorded episode did not diverge and the bag agrees with the search (as `ddarm
+    tune` asks before it writes gains, ddarm.tuning.outputs.AGREEMENT); then the gains are written as a
+    controller YAML (gains/<job>.yaml). Otherwise 'failed', with the reason.
+
+    Raises:
+        StorageFailure: the bag could not be written or read for a failing file system; the unfinished bag is
+            removed first (no scorer accepts it, and its space lets the summary say how the run ended).
+    """
+    record = search_record(job, found)
+    if record['status'] == 'failed':
+        return record
+    tuning = found.tuning
+    spec = with_gains(job.template, tuning.search.kp, tuning.search.kv)
+    bag = run.bag_path(job.name)
     try:
-        _, scored = recorder.record_and_score(spec, run.bag_path(job.name), command=run.summary['command'],
-                                              storage=storage)
-    except DdarmError as error:  # a node that died, a bag that cannot be read: this job has no evidence
-        return {**record, 'status': 'failed', 'reason': f'graph episode: {error}'}
+        _, scored = recorder.record_and_score(spec, bag, command=run.summary['command'], storage=storage)
+    except DdarmError as error:
+        if not _storage_failed(error):  # a node that died, a bag that cannot be read: this job has no evidence
+            return {**record, 'status': 'failed', 'reason': f'graph episode: {error}'}
+        run.discard_bag(bag)
+        reason = f'graph episode: {error} (its unfinished bag removed)'
+        raise StorageFailure(f'{error} (job {job.name}: the campaign stops there, as every later job would fail '
+                             'alike; its unfinished bag removed)', {**record, 'status': 'failed', 'reason': reason}
+                             ) from error
     difference = relative_difference(tuning.best, scored)
     record.update({key: scored[key] for key in INDICES}, bag_index=scored[job.index],
                   diverged=scored['diverged'], max_rel_difference=difference, agree=difference <= AGREEMENT,
@@ -416,21 +492,50 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
     return {**record, 'status': 'ok', 'gains_file': str(Path(gains_file).relative_to(run.path))}
 
 
+class JobRecords:
+    """summary.json's `jobs` and `failed` while the campaign runs, rewritten at every change so that a run stopped,
+    failed or killed part way still says what finished: in the campaign's order, each job once its search is done
+    (search_record: `searched`, or `failed`), then once its gains are checked (check_job: `ok` or `failed`)."""
+
+    def __init__(self, run: RunFolder, campaign: Campaign) -> None:
+        self.run, self.campaign, self._by_name = run, campaign, {}
+        self._write()
+
+    def add(self, record: dict) -> None:
+        """`record` as its job's, in place of what it had; written at once."""
+        self._by_name[record['name']] = record
+        self._write()
+
+    @property
+    def records(self) -> list[dict]:
+        return [self._by_name[job.name] for job in self.campaign.jobs if job.name in self._by_name]
+
+    def _write(self) -> None:
+        records = self.records
+        self.run.summary['failed'] = failed_jobs(records)
+        self.run.record('jobs', records)
+
+
 def check_jobs(recorder: EpisodeRecorder, run: RunFolder, campaign: Campaign, found: dict[str, JobSearch],
-               storage: str = 'mcap', on_record=None) -> list[dict]:
-    """Every job checked in the campaign's order (check_job), its record in the run's summary as soon as it is made,
-    so that a run stopped part way says which jobs were checked. `on_record(record)` is called after each."""
-    records = []
+               storage: str = 'mcap', on_record=None, records: JobRecords | None = None) -> list[dict]:
+    """Every job checked in the campaign's order (check_job), its record in the run's summary (`records`, or new
+    ones) as soon as it is made, so that a run stopped part way says which jobs were checked. `on_record(record)`
+    is called after each."""
+    records = JobRecords(run, campaign) if records is None else records
     for job in campaign.jobs:
-        records.append(check_job(recorder, run, job, found[job.name], storage))
-        run.record('jobs', records)
+        try:
+            record = check_job(recorder, run, job, found[job.name], storage)
+        except StorageFailure as failure:
+            records.add(failure.record)
+            raise
+        records.add(record)
         if on_record is not None:
-            on_record(records[-1])
-    return records
+            on_record(record)
+    return records.records
 
 
 def failed_jobs(records: list[dict]) -> list[str]:
-    return [record['name'] for record in records if record['status'] != 'ok']
+    return [record['name'] for record in records if record['status'] == 'failed']
 
 
 def _cell(value) -> str:
@@ -439,22 +544,22 @@ def _cell(value) -> str:
 
 def summary_table(campaign: Campaign, records: list[dict]) -> str:
     """SUMMARY.md: one row per job, the search's index beside its bag's, and each failure's reason."""
-    lines = [f'# Campaign {campaign.path.name}', '']
+    lines = [f'# Campaign {markdown_text(campaign.path.name)}', '']
     if campaign.description:
-        lines += [campaign.description, '']
+        lines += [markdown_text(campaign.description), '']
     lines += ['Every *bag* number is scored from the job\'s bag (`ddarm score <bag>` recomputes it); *search* is the '
               'value the search found in-process.', '',
               '| job | arm | motion | law | scenario | index | search | bag | status |',
               '|---|---|---|---|---|---|---|---|---|']
     for record in records:
-        bag = f"[{_cell(record['bag_index'])}]({record['bag']})" if 'bag' in record else '–'
-        status = 'ok' if record['status'] == 'ok' else f"**FAILED**: {record['reason']}"
-        lines.append(f"| {record['name']} | {record['arm']} | {record['motion']} | {record['law']} | "
-                     f"{record['scenario_text']} | {record['index']} | {_cell(record.get('search_index'))} | {bag} | "
-                     f"{status.replace('|', '/').replace(chr(10), ' ')} |")
+        bag = f"[{_cell(record['bag_index'])}]({quote(record['bag'])})" if 'bag' in record else '–'
+        status = 'ok' if record['status'] == 'ok' else f"**FAILED**: {markdown_text(record['reason'])}"
+        cells = (markdown_text(record[key]) for key in ('name', 'arm', 'motion', 'law', 'scenario_text', 'index'))
+        lines.append('| ' + ' | '.join((*cells, _cell(record.get('search_index')), bag, status)) + ' |')
     failed = failed_jobs(records)
     lines += ['', f'{len(records) - len(failed)} of {len(records)} jobs ok'
-              + (f"; failed: {', '.join(failed)}" if failed else '') + '.', '', f'![index per job]({PLOT_NAME})', '']
+              + (f"; failed: {markdown_text(', '.join(failed))}" if failed else '') + '.', '',
+              f'![index per job]({PLOT_NAME})', '']
     return '\n'.join(lines)
 
 
@@ -478,13 +583,13 @@ def index_plot(path: Path, records: list[dict]) -> None:
         axis.bar([], [], color=colours.get(law, 'tab:gray'), label=law)
     axis.set_yscale('log')
     axis.set_ylim(bottom=floor)
-    axis.set_xticks(range(len(ordered)), [f"{record['name']} ({record['index']})" for record in ordered],
-                    rotation=60, ha='right', fontsize=7)
+    axis.set_xticks(range(len(ordered)), [figure_text(f"{record['name']} ({record['index']})") for record in ordered],
+                    rotation=60, ha='right', fontsize=7, parse_math=False)
     axis.set_ylabel('index, scored from the bag')
     axis.legend(fontsize=8)
     axis.grid(True, axis='y', alpha=0.3)
     figure.tight_layout()
-    figure.savefig(path)
+    write_new_file(path, lambda file: figure.savefig(file, format='png'))
 
 
 def write_summary(run: RunFolder, campaign: Campaign, records: list[dict]) -> dict:

@@ -13,7 +13,7 @@ import numpy as np
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, arm_joints
 from ddarm.recording.bags import BagError, checked_output_path
-from ddarm.recording.runs import RunFolder, controller_yaml
+from ddarm.recording.runs import RunFolder, controller_yaml, write_new_text
 from ddarm.tuning.report import write_tuning_report
 from ddarm.tuning.robust import describe_scenario
 
@@ -48,7 +48,7 @@ def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out:
                            duration=spec.duration)
     written = [str(run.write_text(name or f'{spec.controller}.yaml', text))]
     if out:
-        checked_output_path(out).write_text(text)
+        write_new_text(out, text)
         written.append(out)
     return written
 

@@ -14,15 +14,18 @@ from matplotlib.figure import Figure
 
 from ddarm.episodes.indices import INDICES
 from ddarm.recording.bags import bag_result, read_episode_bag
-from ddarm.recording.runs import RunFolder
+from ddarm.recording.runs import RunFolder, write_new_file
 from ddarm.reporting.html import markdown_to_html
+from ddarm.reporting.text import figure_text, markdown_code, markdown_text
 
 DPI = 110
 FIGURE_NAME = 'best-episode.png'
 
 
 def episode_figure(path: Path, bag_path: Path | str, title: str) -> None:
-    """Per joint: q^d and q, the error, and the applied against the nominal torque (and its limit), from the bag."""
+    """Per joint: q^d and q, the error, and the applied against the nominal torque (and its limit), from the bag.
+
+    The joint names and `title` come from files (the URDF, the motion): they are drawn as the text they are."""
     episode = bag_result(read_episode_bag(bag_path))
     plan, joints = episode.plan, episode.joint_names
     prismatic = plan.prismatic or (False,) * len(joints)
@@ -37,7 +40,7 @@ def episode_figure(path: Path, bag_path: Path | str, title: str) -> None:
         scale, unit, effort = (1e3, 'mm', 'N') if prismatic[j] else (np.degrees(1.0), 'deg', 'N m')
         axes[j, 0].plot(plan.times, plan.q_ref[:, j] * scale, 'k--', linewidth=1.0, label='$q^d$')
         axes[j, 0].plot(times, q[:, j] * scale, color='tab:red', label='$q$')
-        axes[j, 0].set_ylabel(f'{joint}\nposition ({unit})')
+        axes[j, 0].set_ylabel(f'{figure_text(joint)}\nposition ({unit})', parse_math=False)
         axes[j, 1].plot(times, (plan.q_ref[:count, j] - q[:, j]) * scale, color='tab:red')
         axes[j, 1].axhline(0.0, color='0.6', linewidth=0.8)
         axes[j, 1].set_ylabel(f'error ({unit})')
@@ -62,9 +65,9 @@ def episode_figure(path: Path, bag_path: Path | str, title: str) -> None:
     axes[0, 2].set_title('applied torque (held over each period)')
     for axis in axes[-1]:
         axis.set_xlabel('time t (s)')
-    figure.suptitle(title)
+    figure.suptitle(figure_text(title), parse_math=False)
     figure.tight_layout(rect=(0, 0, 1, 0.97))
-    figure.savefig(path)
+    write_new_file(path, lambda file: figure.savefig(file, format='png'))
 
 
 def _row(values) -> str:
@@ -96,7 +99,8 @@ def robustness_section(robust: dict, index: str, joints: list[str]) -> list[str]
     for name in ('worst', 'mean'):
         lines.append(_row([f'**{name}**', '', '', _index_cell(chosen[name]), _index_cell(nominal[name])]))
     lines += ['', _row(['joint', 'nominal optimum k_p', 'nominal optimum k_v']), _row(['---'] * 3)]
-    lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, nominal['kp'], nominal['kv'])]
+    lines += [_row([markdown_text(name), f'{p:.6g}', f'{d:.6g}'])
+              for name, p, d in zip(joints, nominal['kp'], nominal['kv'])]
     return lines
 
 
@@ -112,6 +116,8 @@ def local_runs_text(report: dict) -> str:
 def write_tuning_report(run: RunFolder, report: dict) -> Path:
     """report.md (and its figure) for a finished `ddarm tune`: the arm, the gains by joint, the evidence.
 
+    Every text from a file or the command line (joint names, paths, the command, warnings) is escaped
+    (ddarm.reporting.text): it reads as itself, in report.md and on the page.
     Returns report.md's path; report.html, the same page self-contained (the figure embedded), is written beside it.
     """
     spec = report['spec']
@@ -121,18 +127,19 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
              f"{Path(motion).name}: {report['index']} minimised")
     figure = run.path / FIGURE_NAME
     episode_figure(figure, report['bag'], title)
-    lines = [f'# {title}', '', f"Command: `{report['command']}`", '',
-             f"- plant URDF: `{spec['urdf'] or 'config/ddarm.urdf'}`"
-             + (f"; controller model: `{spec['model_urdf']}`" if spec['model_urdf'] else ''),
-             f'- motion: `{motion}`, T = {spec["duration"]:g} s, Δ = {spec["period"]:g} s, compute delay d = '
-             f'{spec["delay"]}, τ = {spec["tau"]:g} s, torque limit {spec["torque_limit"]}',
+    lines = [f'# {markdown_text(title)}', '', f"Command: {markdown_code(report['command'])}", '',
+             f"- plant URDF: {markdown_code(spec['urdf'] or 'config/ddarm.urdf')}"
+             + (f"; controller model: {markdown_code(spec['model_urdf'])}" if spec['model_urdf'] else ''),
+             f'- motion: {markdown_code(motion)}, T = {spec["duration"]:g} s, Δ = {spec["period"]:g} s, compute '
+             f'delay d = {spec["delay"]}, τ = {spec["tau"]:g} s, torque limit {spec["torque_limit"]}',
              f"- search: {report['method']}, {report['episodes']} episodes in {report['wall_time_s']:.2f} s "
              f"({report['episodes_per_s']:.0f} episodes/s), best "
              + (f"{report['robust']['objective']} {report['index']} over the scenarios" if 'robust' in report
                 else report['index']) + f" = {report['search_index']:.9g}",
              *([f"- {local_runs_text(report)}"] if report['restarts'] else []),
              '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
-    lines += [_row([name, f'{p:.6g}', f'{d:.6g}']) for name, p, d in zip(joints, report['kp'], report['kv'])]
+    lines += [_row([markdown_text(name), f'{p:.6g}', f'{d:.6g}'])
+              for name, p, d in zip(joints, report['kp'], report['kv'])]
     if 'robust' in report:
         lines += robustness_section(report['robust'], report['index'], joints)
     lines += ['', '## Evidence', '', _row(['', *INDICES]), _row(['---'] * (len(INDICES) + 1)),
@@ -141,13 +148,14 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
               f"Largest relative difference {report['max_rel_difference']:.2e}: "
               + ('the bag confirms the search.' if report['agree'] else
                  '**the bag does not confirm the search: no gains were written.**'),
-              f"Bag: `{report['bag']}`"]
+              f"Bag: {markdown_code(report['bag'])}"]
     if report.get('saturated_joints'):
-        lines.append(f"At their torque limit in the recorded episode: {', '.join(report['saturated_joints'])}.")
+        lines.append('At their torque limit in the recorded episode: '
+                     f"{', '.join(markdown_text(name) for name in report['saturated_joints'])}.")
     for warning in report.get('warnings', []):
-        lines.append(f'- WARNING: {warning}')
+        lines.append(f'- WARNING: {markdown_text(warning)}')
     if report['gains_files']:
-        lines += ['', 'Controller YAML: ' + ', '.join(f'`{name}`' for name in report['gains_files'])]
+        lines += ['', 'Controller YAML: ' + ', '.join(markdown_code(name) for name in report['gains_files'])]
     lines += ['', f'![the best gains\' recorded episode]({FIGURE_NAME})', '']
     page = run.write_text('report.md', '\n'.join(lines))
     run.log.info('wrote %s', markdown_to_html(page, run.path / 'report.html'))

@@ -1,0 +1,73 @@
+"""Text from files (joint, link and frame names, paths, commands, messages) shown as itself in a report or a figure.
+
+A URDF, a motion file or a command line can hold any characters: Markdown or HTML syntax, a newline that
+ends a table row, a bidirectional override that reorders the digits after it, a `$` that matplotlib takes for
+mathematics. Every such text goes through one of these before it is written into a report (into a figure:
+`figure_text`, drawn with parse_math=False), so that it can neither run, nor link, nor change the layout, nor pass
+for another text: it reads as the characters it has.
+"""
+
+from __future__ import annotations
+
+import re
+import unicodedata
+
+# Line breaks, other controls, format characters (bidirectional overrides, zero-width ones), separators,
+# surrogates and private or unassigned code points: each shown by name, as nothing on the page is invisible.
+_INVISIBLE_CATEGORIES = frozenset(('Cc', 'Cf', 'Cs', 'Co', 'Cn', 'Zl', 'Zp'))
+# What starts emphasis, code, a link or a table cell inline; Python-Markdown and CommonMark both take a
+# backslash before each of them as the character itself.
+_MARKDOWN_PUNCTUATION = frozenset('\\`*_[]|')
+# What CommonMark or GitHub reads inline but Python-Markdown cannot backslash-escape: a character reference
+# is the character itself in both (an HTML tag, an entity, strikethrough, GitHub's mathematics).
+_REFERENCES = {'&': '&amp;', '<': '&lt;', '~': '&#126;', '$': '&#36;'}
+_BACKTICKS = re.compile('`+')
+
+
+def visible(text, pictures: bool = True) -> str:
+    """`text` (str() of it) on one line with every invisible character shown: a control as its Unicode control
+    picture (a newline as ␊) if `pictures`, any other (or every one, without `pictures`) as <U+XXXX>."""
+    shown = []
+    for character in str(text):
+        if unicodedata.category(character) not in _INVISIBLE_CATEGORIES:
+            shown.append(character)
+        elif pictures and ord(character) < 0x20:
+            shown.append(chr(0x2400 + ord(character)))
+        elif pictures and character == '\x7f':
+            shown.append('\u2421')
+        else:
+            shown.append(f'<U+{ord(character):04X}>')
+    return ''.join(shown)
+
+
+def figure_text(text) -> str:
+    """`text` for a matplotlib label drawn with parse_math=False: visible, in ASCII where it was invisible (the
+    figures' fonts have no control pictures)."""
+    return visible(text, pictures=False)
+
+
+def markdown_text(text) -> str:
+    """Markdown that renders as `text` (str() of it), literally and on one line, also inside a table cell."""
+    shown = visible(text)
+    escaped = []
+    for at, character in enumerate(shown):
+        if character in _REFERENCES:
+            escaped.append(_REFERENCES[character])
+        elif character == '_' and shown[at - 1:at].isalnum() and shown[at + 1:at + 2].isalnum():
+            escaped.append(character)  # within a word, as in computed_torque, _ is never emphasis: left readable
+        elif character in _MARKDOWN_PUNCTUATION:
+            escaped.append('\\' + character)
+        else:
+            escaped.append(character)
+    return ''.join(escaped)
+
+
+def markdown_code(text) -> str:
+    """A Markdown code span that renders as `text` (str() of it), literally and on one line; not for table cells,
+    where GitHub would split it at a |."""
+    shown = visible(text)
+    fence = '`' * (1 + max((len(run) for run in _BACKTICKS.findall(shown)), default=0))
+    # Spaced off a backtick at either end, which would otherwise join the fence; renderers strip the spaces.
+    padding = ' ' if shown[:1] == '`' or shown[-1:] == '`' or not shown.strip() else ''
+    return f'{fence}{padding}{shown}{padding}{fence}'
+
