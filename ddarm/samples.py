@@ -15,6 +15,8 @@ from ddarm.errors import DdarmError
 MAX_JOINTS = 64
 # Refused before any work (FAULTS.md 6): far beyond an episode length we run.
 MAX_REFERENCE_POINTS = 1_000_000
+# Sample periods of an episode, refused beyond before any work (FAULTS.md 6).
+MAX_SAMPLES = 1_000_000
 # The fields of a reference point, in the order a reference holds them: q^d, q̇^d, q̈^d, P^nom.
 REFERENCE_FIELDS = ('positions', 'velocities', 'accelerations', 'effort')
 

@@ -292,11 +292,10 @@ def run_loops(environment: dict[str, str]) -> tuple[dict, list[str]]:
     return json.loads(done.stdout.splitlines()[-1]), done.stderr.splitlines()
 
 
-def loops_folder(cache: Path, stem: str) -> Path:
-    """The folder of the checked cache `cache` holding the compiled code of ddarm's module named `stem` ('plant')."""
-    folders = list((cache / 'loops').glob(f'{stem}-*'))
-    assert len(folders) == 1, folders
-    return folders[0]
+def loops_folder(cache: Path, module: str) -> Path:
+    """The folder of the checked cache `cache` holding the compiled code of this checkout's `module`
+    ('ddarm.physics.plant'); the session's cache may also hold other checkouts' folders."""
+    return cache / 'loops' / dynamics._loops_folder(importlib.import_module(module).__file__).name
 
 
 @pytest.fixture
@@ -308,8 +307,11 @@ def warm_cache(tmp_path):
     expected = loop_numbers()  # also caches anything it compiles that the session's warm-up did not
     source, cache = dynamics.cache_folder(), tmp_path / 'cache'
     cache.mkdir(mode=0o700)
-    if (source / 'loops').is_dir():
-        shutil.copytree(source / 'loops', cache / 'loops')
+    (cache / 'loops').mkdir(mode=0o700)
+    for module in LOOP_MODULES:
+        folder = loops_folder(source, module)
+        if folder.is_dir():
+            shutil.copytree(folder, cache / 'loops' / folder.name)
     name = module_name(load_chain(None))
     (cache / 'dynamics' / '__pycache__').mkdir(mode=0o700, parents=True)
     (cache / 'dynamics').chmod(0o700)
@@ -328,7 +330,7 @@ def test_a_spoiled_cache_file_of_the_compiled_loops_is_discarded_saying_so_and_r
                                                                                       kind, spoil):
     cache, expected = warm_cache
     stem = module.rsplit('.', 1)[1]
-    folder = loops_folder(cache, stem)
+    folder = loops_folder(cache, module)
     files = sorted(folder.glob(f'{stem}.{function}-*.{"nbi" if kind == "index" else "nbc"}'))
     assert len(files) == 1, sorted(folder.iterdir())
     spoil(files[0])

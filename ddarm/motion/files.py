@@ -37,10 +37,8 @@ MAX_JOINTS joints, MAX_POINTS points; below them, reading costs time and memory 
 from __future__ import annotations
 
 import math
-import os
 import re
 import reprlib
-import stat
 import sys
 from collections import Counter
 from dataclasses import dataclass
@@ -49,8 +47,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ddarm import samples
-from ddarm.errors import DdarmError
+from ddarm.datafiles import MAX_DEPTH, MAX_FILE_BYTES, DataFileError, read_data_file
+from ddarm.samples import MAX_JOINTS
 from ddarm.motion.programmed import MotionError, ProgrammedMotion
 from ddarm.motion.waypoints import MAX_POINTS, WaypointMotion
 
@@ -88,40 +86,9 @@ class Unusable:
     __str__ = __repr__
 
 
-# The bounds of a data file (a motion, a campaign, the paper's settings), each refused before the work it bounds.
-# 32 MiB holds a motion of MAX_POINTS points of three joints' positions and velocities, written as repr writes them.
-MAX_FILE_BYTES = 32 * 2**20
 # YAML values, an alias counted as every value it repeats: a few hundred bytes of nested aliases repeat a list
 # 10^9 times, which no field could take in and no message could show.
 MAX_NODES = 4_000_000
-# Nesting levels: a data file nests a handful; each level is a frame of whatever walks the values.
-MAX_DEPTH = 100
-# Joints of a motion: the engine's and the nodes' bound.
-MAX_JOINTS = samples.MAX_JOINTS
-
-
-class DataFileError(DdarmError, ValueError):
-    """A data file that cannot be read at all: not a regular file, larger than MAX_FILE_BYTES, or not UTF-8."""
-
-
-def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
-    """The text of the data file at `path`, read only once it is known to be a regular file of at most `limit`
-    bytes (a FIFO or a device would block or never end); OSError for what the OS refuses."""
-    path = Path(path)
-    status = os.stat(path)
-    if not stat.S_ISREG(status.st_mode):
-        raise DataFileError(f'{path} is not a regular file')
-    if status.st_size > limit:
-        raise DataFileError(f'{path} holds {status.st_size} bytes, more than the {limit} it may')
-    with path.open('rb') as file:
-        data = file.read(status.st_size + 1)  # one byte more shows a file that grew since the stat
-    if len(data) > status.st_size:
-        raise DataFileError(f'{path} grew while it was read')
-    try:
-        return data.decode('utf-8')
-    except UnicodeDecodeError as error:
-        raise DataFileError(f'{path} is not UTF-8 text ({error})') from None
-
 
 # YAML 1.2's core schema, in decimal (https://yaml.org/spec/1.2.2/#1032-tag-resolution). What YAML 1.1 (PyYAML's
 # default) reads as a number in other ways is text here, and so refused wherever a number is due: a file edited by

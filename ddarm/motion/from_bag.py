@@ -22,9 +22,9 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from ddarm.datafiles import MAX_TOPIC_MESSAGES, DataFileError, bag_metadata_text
 from ddarm.motion.files import MAX_JOINTS, MAX_POINTS, DataLoader, parse_motion, shown
 from ddarm.motion.programmed import MotionError
-from ddarm.recording.bags import MAX_TOPIC_MESSAGES, BagError, checked_metadata
 
 # For a bag that carries no message definitions of its own (older sqlite3 bags).
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -61,8 +61,8 @@ def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequ
     if not (bag / 'metadata.yaml').is_file():
         raise MotionError(f'{bag}: no metadata.yaml in it: not a rosbag2 bag, or a recording that never closed')
     try:
-        checked_metadata(bag)  # before rosbags reads it
-    except BagError as error:
+        bag_metadata_text(bag)  # before rosbags reads it
+    except DataFileError as error:
         raise MotionError(str(error)) from None
     try:
         with AnyReader([bag], default_typestore=TYPESTORE) as reader:

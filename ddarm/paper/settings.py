@@ -27,7 +27,8 @@ from ddarm.control.gains import SEARCH_START_OMEGAS, omega_rule_computed_torque
 from ddarm.control.laws import CONTROLLERS, GainError, checked_delay
 from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 from ddarm.errors import DdarmError
-from ddarm.motion.files import DataFileError, DataLoader, read_data_file
+from ddarm.datafiles import DataFileError, read_data_file
+from ddarm.motion.files import DataLoader
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motion_joints
 from ddarm.paper import typed
 from ddarm.tuning.methods import DEFAULT_POPULATION

@@ -27,12 +27,13 @@ from rosbags.typesys import Stores, get_typestore
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.samples import MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.samples import MAX_JOINTS, MAX_SAMPLES, MessageError, checked_reference, finite_array, joint_order, sample_at
 from ddarm.episodes.indices import IndicesError
 from ddarm.episodes.result import Episodes, RecordingError
-from ddarm.episodes.spec import MAX_SAMPLES, EpisodePlan, EpisodeSpec
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.interrupts import Interrupted, critical_section
-from ddarm.motion.files import MAX_DEPTH, DataFileError, read_data_file, shown
+from ddarm.datafiles import MAX_TOPIC_MESSAGES, SAFE_LOADER, DataFileError, bag_metadata_text
+from ddarm.motion.files import shown
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -359,37 +360,12 @@ def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpis
         raise BagError(f'{path}: unreadable bag ({type(error).__name__}: {error})') from error
 
 
-# libyaml's safe loader, where PyYAML was built with it: the pure-Python one took 56 ms per bag's metadata, a
-# quarter of an episode's scoring.
-SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
-# A bag's metadata.yaml: an episode's is a few kB (its topics, files and custom data); 1 MiB is thousands of topics.
-MAX_METADATA_BYTES = 2**20
-# Messages of one topic read from a bag, counted as they are read (the metadata's counts may lie): an episode's
-# samples, one message each, and at most MAX_SAMPLES periods.
-MAX_TOPIC_MESSAGES = MAX_SAMPLES + 1
-
-
 def checked_metadata(path: Path | str) -> str:
-    """The text of the bag's metadata.yaml, once it is known to be a regular file of at most MAX_METADATA_BYTES,
-    nested at most MAX_DEPTH levels, with no YAML anchor or alias (rosbag2 writes none, and a few hundred bytes
-    of aliases expand to gigabytes): checked before rosbags or anything else reads it. BagError naming the bag."""
-    path = Path(path)
+    """ddarm.datafiles.bag_metadata_text, BagError naming the bag: checked before rosbags or anything else reads it."""
     try:
-        text = read_data_file(path / 'metadata.yaml', MAX_METADATA_BYTES)
-        depth = 0
-        for event in yaml.parse(text, Loader=SAFE_LOADER):
-            if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None) is not None:
-                raise BagError(f'{path}: metadata.yaml holds a YAML anchor or alias, which rosbag2 never writes')
-            if isinstance(event, yaml.CollectionStartEvent):
-                depth += 1
-                if depth > MAX_DEPTH:
-                    raise BagError(f'{path}: metadata.yaml nests more than {MAX_DEPTH} levels deep, which rosbag2 '
-                                   'never writes')
-            elif isinstance(event, yaml.CollectionEndEvent):
-                depth -= 1
-    except (OSError, DataFileError, yaml.YAMLError) as error:
-        raise BagError(f'{path}: unreadable bag: metadata.yaml: {" ".join(str(error).split())}') from error
-    return text
+        return bag_metadata_text(path)
+    except DataFileError as error:
+        raise BagError(str(error)) from error
 
 
 def _custom_data(path: Path | str) -> dict:

@@ -31,7 +31,8 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
-from ddarm.motion.files import DataFileError, DataLoader, read_data_file, shown
+from ddarm.datafiles import DataFileError, read_data_file
+from ddarm.motion.files import DataLoader, shown
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
 from ddarm.recording.runs import RunFolder, write_new_file

@@ -1,0 +1,83 @@
+"""Data files from someone else (motions, campaigns, the paper's settings, a bag's metadata.yaml), read within
+stated bounds: a regular file of bounded size, UTF-8, and for a bag's metadata no YAML anchor or alias. The
+lowest layer, so that every reader of such files (ddarm.motion, ddarm.recording, ddarm.tuning) shares one rule.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import yaml
+
+from ddarm.errors import DdarmError
+from ddarm.samples import MAX_SAMPLES
+
+# The bounds of a data file (a motion, a campaign, the paper's settings), each refused before the work it bounds.
+# 32 MiB holds a motion of MAX_POINTS points of three joints' positions and velocities, written as repr writes them.
+MAX_FILE_BYTES = 32 * 2**20
+# Nesting levels: a data file nests a handful; each level is a frame of whatever walks the values.
+MAX_DEPTH = 100
+# libyaml's safe loader, where PyYAML was built with it: the pure-Python one took 56 ms per bag's metadata, a
+# quarter of an episode's scoring.
+SAFE_LOADER = getattr(yaml, 'CSafeLoader', yaml.SafeLoader)
+# A bag's metadata.yaml: an episode's is a few kB (its topics, files and custom data); 1 MiB is thousands of topics.
+MAX_METADATA_BYTES = 2**20
+# Messages of one topic read from a bag, counted as they are read (the metadata's counts may lie): an episode's
+# samples, one message each, and at most MAX_SAMPLES periods.
+MAX_TOPIC_MESSAGES = MAX_SAMPLES + 1
+
+
+class DataFileError(DdarmError, ValueError):
+    """A data file that cannot be read at all: not a regular file, larger than its bound, or not UTF-8; or a bag's
+    metadata.yaml that rosbag2 would never write."""
+
+
+def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
+    """The text of the data file at `path`, read only once it is known to be a regular file of at most `limit`
+    bytes (a FIFO or a device would block or never end); OSError for what the OS refuses."""
+    path = Path(path)
+    status = os.stat(path)
+    if not stat.S_ISREG(status.st_mode):
+        raise DataFileError(f'{path} is not a regular file')
+    if status.st_size > limit:
+        raise DataFileError(f'{path} holds {status.st_size} bytes, more than the {limit} it may')
+    with path.open('rb') as file:
+        data = file.read(status.st_size + 1)  # one byte more shows a file that grew since the stat
+    if len(data) > status.st_size:
+        raise DataFileError(f'{path} grew while it was read')
+    try:
+        return data.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise DataFileError(f'{path} is not UTF-8 text ({error})') from None
+
+
+def _metadata_problem(text: str) -> str | None:
+    depth = 0
+    for event in yaml.parse(text, Loader=SAFE_LOADER):
+        if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None) is not None:
+            return 'holds a YAML anchor or alias, which rosbag2 never writes'
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_DEPTH:
+                return f'nests more than {MAX_DEPTH} levels deep, which rosbag2 never writes'
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
+    return None
+
+
+def bag_metadata_text(bag: Path | str) -> str:
+    """The text of the bag's metadata.yaml, once it is known to be a regular file of at most MAX_METADATA_BYTES,
+    nested at most MAX_DEPTH levels, with no YAML anchor or alias (rosbag2 writes none, and a few hundred bytes
+    of aliases expand to gigabytes): checked before rosbags or anything else reads it. DataFileError naming the
+    bag."""
+    path = Path(bag)
+    try:
+        text = read_data_file(path / 'metadata.yaml', MAX_METADATA_BYTES)
+        problem = _metadata_problem(text)
+    except (OSError, DataFileError, yaml.YAMLError) as error:
+        raise DataFileError(f'{path}: unreadable bag: metadata.yaml: {" ".join(str(error).split())}') from error
+    if problem is not None:
+        raise DataFileError(f'{path}: metadata.yaml {problem}')
+    return text
