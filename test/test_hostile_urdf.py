@@ -402,3 +402,42 @@ def test_a_one_joint_arm_is_read_checked_and_run(capfd, tmp_path, monkeypatch, k
     arm = Arm.from_urdf(tmp_path / 'arm.urdf')
     q = np.full(model.nq, 0.2) if kind != 'continuous' else np.array([np.cos(0.2), np.sin(0.2)])
     assert arm.mass_matrix(np.array([0.2])) == pytest.approx(pin.crba(model, model.createData(), q), rel=1e-14)
+
+
+def fixed_chain(links: int) -> str:
+    """The arm with a chain of fixed links hanging from l3, `links` links in all."""
+    chain = [f'c{index}' for index in range(links - 4)]
+    parents = ['l3', *chain[:-1]]
+    return arm_urdf(extra=''.join(joint(f'f{index}', 'fixed', parent, child, '0.001 0 0')
+                                  for index, (parent, child) in enumerate(zip(parents, chain)))).replace(
+        '</robot>', ''.join(f'<link name="{name}"/>' for name in chain) + '</robot>')
+
+
+def test_a_urdf_of_more_links_than_the_bound_is_refused_before_urdfdom_walks_it(tmp_path):
+    # 5,000 links in a chain overflowed urdfdom's and Pinocchio's recursion: a segfault, not an error.
+    path = write(tmp_path, fixed_chain(5000))
+    script = ('from ddarm.physics.arm import Arm, ModelError\n'
+              f'try:\n    Arm.from_urdf({str(path)!r})\nexcept ModelError as error:\n    print(error)\n')
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and 'has 5000 links, more than the 1000' in done.stdout, done
+
+
+def test_a_urdf_of_as_many_links_as_the_bound_is_read(tmp_path):
+    from ddarm.physics.arm import MAX_URDF_LINKS
+
+    arm = Arm.from_urdf(write(tmp_path, fixed_chain(MAX_URDF_LINKS)))
+    assert arm.joint_names == ['j1', 'j2', 'j3']
+
+
+def test_a_urdf_nested_deeper_than_the_bound_is_refused(tmp_path):
+    path = write(tmp_path, arm_urdf(extra='<gazebo>' * 101 + '</gazebo>' * 101))
+    with pytest.raises(ModelError, match='deeper than 100 levels'):
+        Arm.from_urdf(path)
+
+
+def test_a_urdf_larger_than_the_bound_is_refused_unread(tmp_path):
+    path = tmp_path / 'arm.urdf'
+    with path.open('wb') as file:
+        file.truncate(32 * 2**20 + 1)
+    with pytest.raises(ModelError, match=f'holds {32 * 2**20 + 1} bytes, more than the {32 * 2**20}'):
+        Arm.from_urdf(path)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from ddarm.datafiles import MAX_FILE_BYTES
 from ddarm.errors import DdarmError
 
 URDF_NAME = 'ddarm.urdf'
@@ -149,12 +150,40 @@ def _refuse_doctype(path: Path, name, *_) -> None:
                      f'Pinocchio reads the file with')
 
 
+# A URDF's bounds. Arms have tens of links, a humanoid with hands a few hundred; urdfdom and Pinocchio walk the
+# kinematic tree recursively, and a chain of 5,000 links overflowed their stack (a segfault, not an error).
+MAX_URDF_BYTES = MAX_FILE_BYTES
+MAX_URDF_LINKS = 1000
+# XML nesting: a URDF nests about 5 levels (robot, link, inertial, origin); each level is a frame of TinyXML2's.
+MAX_URDF_LEVELS = 100
+
+
+def _start_element(path: Path, data: bytes, parser, builder, levels: list[int], tag: str, attributes) -> None:
+    levels[0] += 1
+    if levels[0] > MAX_URDF_LEVELS:
+        raise ModelError(f'URDF {path} nests elements deeper than {MAX_URDF_LEVELS} levels (line '
+                         f'{parser.CurrentLineNumber}): a URDF nests about 5')
+    builder.start(tag, _attributes_as_tinyxml2_reads_them(data, parser.CurrentByteIndex, attributes))
+
+
+def _end_element(builder, levels: list[int], tag: str) -> None:
+    levels[0] -= 1
+    builder.end(tag)
+
+
 def _read_xml(path: Path) -> tuple[str, ElementTree.Element]:
-    """The file's text and its root element, read as urdfdom's TinyXML2 reads them: UTF-8, no DTD."""
+    """The file's text and its root element, read as urdfdom's TinyXML2 reads them: UTF-8, no DTD; at most
+    MAX_URDF_BYTES and MAX_URDF_LEVELS deep."""
     try:
-        data = path.read_bytes()
+        size = path.stat().st_size
+        if size > MAX_URDF_BYTES:
+            raise ModelError(f'URDF {path} holds {size} bytes, more than the {MAX_URDF_BYTES} a URDF may')
+        with path.open('rb') as file:
+            data = file.read(MAX_URDF_BYTES + 1)
     except OSError as error:
         raise ModelError(f'URDF {path} cannot be read: {error.strerror}') from error
+    if len(data) > MAX_URDF_BYTES:
+        raise ModelError(f'URDF {path} grew beyond {MAX_URDF_BYTES} bytes while it was read')
     try:
         text = data.decode('utf-8')
     except UnicodeDecodeError as error:
@@ -163,9 +192,9 @@ def _read_xml(path: Path) -> tuple[str, ElementTree.Element]:
     builder = ElementTree.TreeBuilder()
     parser = expat.ParserCreate()  # no namespace processing: element names as TinyXML2 sees them, prefix and all
     parser.StartDoctypeDeclHandler = partial(_refuse_doctype, path)  # before any entity is declared
-    parser.StartElementHandler = lambda tag, attributes: builder.start(
-        tag, _attributes_as_tinyxml2_reads_them(data, parser.CurrentByteIndex, attributes))
-    parser.EndElementHandler = builder.end
+    levels = [0]
+    parser.StartElementHandler = partial(_start_element, path, data, parser, builder, levels)
+    parser.EndElementHandler = partial(_end_element, builder, levels)
     try:
         parser.Parse(text, True)  # text, not bytes: UTF-8 whatever the XML declaration says, as TinyXML2 reads it
     except expat.ExpatError as error:
@@ -329,8 +358,15 @@ def read_urdf(path: Path) -> UrdfDescription:
     text, root = _read_xml(path)
     if root.tag != 'robot':
         raise ModelError(f'URDF {path}: the root element is <{root.tag}>, not <robot>')
+    links = root.findall('link')
+    if len(links) > MAX_URDF_LINKS:
+        raise ModelError(f'URDF {path} has {len(links)} links, more than the {MAX_URDF_LINKS} ddarm reads (an arm '
+                         f'has tens)')
+    if len(root.findall('joint')) >= MAX_URDF_LINKS:
+        raise ModelError(f'URDF {path} has {len(root.findall("joint"))} joints, more than a tree of at most '
+                         f'{MAX_URDF_LINKS} links has')
     inertias = {}
-    for element in root.findall('link'):
+    for element in links:
         name = element.get('name')
         if not name:
             raise ModelError(f'URDF {path}: a <link> has no name')
