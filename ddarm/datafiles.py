@@ -80,4 +80,23 @@ def bag_metadata_text(bag: Path | str) -> str:
         raise DataFileError(f'{path}: unreadable bag: metadata.yaml: {" ".join(str(error).split())}') from error
     if problem is not None:
         raise DataFileError(f'{path}: metadata.yaml {problem}')
+    _check_storage_files(path, yaml.load(text, Loader=SAFE_LOADER))
     return text
+
+
+def _check_storage_files(bag: Path, metadata) -> None:
+    """Refuse storage files named in the metadata that lie outside the bag's folder or are not regular files:
+    reading a FIFO would wait for a writer for ever, a device would never end."""
+    information = metadata.get('rosbag2_bagfile_information') if isinstance(metadata, dict) else None
+    names = information.get('relative_file_paths') if isinstance(information, dict) else None
+    for name in names if isinstance(names, list) else ():
+        if not isinstance(name, str) or not name or Path(name).is_absolute() or '..' in Path(name).parts:
+            raise DataFileError(f'{bag}: metadata.yaml: relative_file_paths entry {name!r} is not a file inside '
+                                f'the bag')
+        try:
+            status = os.stat(bag / name)
+        except OSError:
+            continue  # a missing file is rosbags' to report, with what it knows of the storage
+        if not stat.S_ISREG(status.st_mode):
+            raise DataFileError(f'{bag}: storage file {name} is not a regular file (a FIFO, a socket or a '
+                                f'device)')

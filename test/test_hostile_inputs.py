@@ -291,3 +291,30 @@ def test_ray_refuses_an_address_where_something_that_is_not_ray_listens(monkeypa
             RayCluster(f'127.0.0.1:{listener.port}')
     finally:
         listener.close()
+
+
+@pytest.mark.parametrize('change', ['fifo', 'outside'])
+def test_a_bag_whose_storage_file_is_no_regular_file_inside_it_is_refused_without_reading_it(tmp_path, capsys,
+                                                                                              change):
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:
+        writer.close(complete=True)
+    metadata = (bag / 'metadata.yaml').read_text()
+    (storage,) = bag.glob('*.mcap')
+    if change == 'fifo':  # reading it would wait for a writer for ever
+        storage.unlink()
+        os.mkfifo(storage)
+        named = f'storage file {storage.name} is not a regular file'
+    else:
+        (bag / 'metadata.yaml').write_text(metadata.replace(f'- {storage.name}', f'- ../{storage.name}'))
+        named = f"relative_file_paths entry '../{storage.name}' is not a file inside the bag"
+    guard = threading.Timer(30.0, lambda: open(storage, 'wb').close() if change == 'fifo' else None)
+    guard.start()
+    try:
+        for refused in (lambda: score_bag(bag), lambda: from_bag.motion_file_from_bag(bag)):
+            with pytest.raises((BagError, MotionError), match=named):
+                refused()
+        assert main(['score', str(bag)]) == 2
+        assert named in capsys.readouterr().err
+    finally:
+        guard.cancel()
