@@ -101,6 +101,16 @@ def test_waypoint_velocities_beyond_any_torque_are_not_blamed_on_a_still_joint(c
     assert err.count('\n') == 1 and 'neither moves' not in err and 'joint1' in err and 'finite' in err
 
 
+@pytest.mark.parametrize('period', [PERIOD_RANGE[0], 2.0, PERIOD_RANGE[1]])
+def test_an_episode_runs_at_every_period_of_its_range(capsys, period):
+    # The plant refused Δ > 1 s that the command line and the spec accept.
+    duration = max(20 * period, 1e-3)
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '0.05', '--period', repr(period),
+                 '--duration', repr(duration), '--json']) == 0
+    report = strict_json(capsys.readouterr().out)
+    assert report['spec']['period'] == period and report['samples_scored'] > 0
+
+
 def test_the_stability_json_is_strict_at_the_smallest_period(capsys):
     assert main(['stability', '--period', f'{PERIOD_RANGE[0]!r}', '--json']) == 0
     report = strict_json(capsys.readouterr().out)

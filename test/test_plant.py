@@ -30,7 +30,7 @@ def test_non_finite_or_misshapen_torque_is_refused_and_nothing_integrated(arm, t
 
 
 @pytest.mark.parametrize('options, problem', [
-    (dict(period=0.0), 'period'), (dict(period=-0.01), 'period'), (dict(period=5.0), 'period'),
+    (dict(period=0.0), 'period'), (dict(period=-0.01), 'period'), (dict(period=10.5), 'period'), (dict(period=5e-7), 'period'),
     (dict(period=float('nan')), 'period'), (dict(substeps=0), 'substeps'), (dict(substeps=2.5), 'substeps'),
 ])
 def test_bad_sampling_options_are_refused(options, problem):

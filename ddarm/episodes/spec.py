@@ -18,10 +18,8 @@ from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau,
 from ddarm.physics.arm import Arm, ModelError, load_arm, movable_joints
 from ddarm.physics.dynamics import Chain, load_chain
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
-from ddarm.samples import MAX_SAMPLES
+from ddarm.samples import MAX_SAMPLES, PERIOD_RANGE
 
-# Δ in s: below a microsecond no controller samples, and T/Δ, ω* = ωΔ*/Δ stay far from overflow.
-PERIOD_RANGE = (1e-6, 10.0)
 # T in s, a motion file's too: hours of motion, and T/Δ is computed without overflow at every Δ of PERIOD_RANGE.
 MAX_DURATION = 10_000.0
 

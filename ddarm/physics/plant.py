@@ -15,6 +15,7 @@ import numpy as np
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.dynamics import Chain, cached_njit, compiled_dynamics, typed_entry
+from ddarm.samples import PERIOD_RANGE
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes
@@ -25,7 +26,7 @@ DEFAULT_SUBSTEPS = 8
 DEFAULT_MAX_POSITION = 100.0  # rad
 DEFAULT_MAX_VELOCITY = 1000.0  # rad/s
 MAX_SUBSTEPS = 10_000
-# Sampling periods the nodes accept, s; in-process episodes take any period in (0, 1].
+# Sampling periods the nodes accept, s (a timer of ROS); in-process episodes take any period of PERIOD_RANGE.
 NODE_PERIOD_RANGE = (1e-4, 1.0)
 
 
@@ -59,8 +60,9 @@ class PlantOptions:
     max_velocity: float = DEFAULT_MAX_VELOCITY
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.period) and 0 < self.period <= 1.0):
-            raise PlantError(f'period must be in (0, 1] s, got {self.period!r}')
+        if not (np.isfinite(self.period) and PERIOD_RANGE[0] <= self.period <= PERIOD_RANGE[1]):
+            raise PlantError(f'period must be within [{PERIOD_RANGE[0]:g}, {PERIOD_RANGE[1]:g}] s, '
+                             f'got {self.period!r}')
         if not (isinstance(self.substeps, (int, np.integer)) and 1 <= self.substeps <= MAX_SUBSTEPS):
             raise PlantError(f'substeps must be an integer in [1, {MAX_SUBSTEPS}], got {self.substeps!r}')
         for name in ('max_position', 'max_velocity'):
