@@ -169,3 +169,14 @@ def test_the_raising_step_takes_each_omega_as_a_product_of_the_step(monkeypatch)
     spec = EpisodeSpec(controller='computed_torque', kp=(1.0,) * 3, kv=(1.0,) * 3, external_torque=(0.0, 0.01, 0.0))
     choice = procedures.omega_procedure(spec, np.radians(90.0), torque_factor=1e9, omega_step=0.1, omega_max=3.0)
     assert [step.omega for step in choice.steps] == [0.1 + k * 0.1 for k in range(30)]
+
+
+def test_a_damping_whose_mode_leaves_the_computed_range_is_refused_with_the_range_this_loop_takes(capsys):
+    # PD + gravity's modes have the damping ζ√μ_k: ζ = 1e-6 was refused quoting 7.3e-07, a number never given.
+    assert main(['stability', '--controller', 'pd_gravity', '--zeta', '1e-6']) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'zeta 1e-06 gives the mode of μ_k' in err
+    low = err.split('this loop takes zeta within [')[1].split(',')[0]
+    assert main(['stability', '--controller', 'pd_gravity', '--zeta', low, '--json']) == 0
+    report = strict_json(capsys.readouterr().out)
+    assert all(entry['omega_delta'] > 0 for entry in report['boundaries'])

@@ -9,7 +9,7 @@ import numpy as np
 from ddarm.cli.arguments import absolute_path, add_arm_arguments, period_seconds, whole_number
 from ddarm.cli.output import format_vector, print_json
 from ddarm.control.laws import MAX_DELAY
-from ddarm.control.stability import StabilityError, modal_boundary_omega_delta, modal_gains
+from ddarm.control.stability import ZETA_RANGE, StabilityError, modal_boundary_omega_delta, modal_gains
 from ddarm.episodes.spec import PERIOD_RANGE
 
 ARM_OPTIONS = ('urdf', 'model_urdf', 'trajectory', 'motion')
@@ -90,7 +90,8 @@ def add_stability_parser(commands) -> None:
     stability.add_argument('--delay', type=_delay, nargs='+', default=[0, 1, 2], metavar='D',
                            help='compute delays in samples (0 1 2)')
     stability.add_argument('--zeta', type=_positive, nargs='+', default=[1.0], metavar='Z',
-                           help='damping ζ of the ω rule, k_v = 2ζω (1, as the ω rules use)')
+                           help='damping ζ of the ω rule, k_v = 2ζω (1, as the ω rules use); each mode\'s ζ√μ_k within '
+                                f'[{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}], the range its boundary is computed within')
     stability.add_argument('--controller', choices=('computed_torque', 'pd_gravity'), default='computed_torque',
                            help='computed torque with an exact model, or PD + gravity linearised at the goal q_f '
                                 "with the arm's inertia (computed_torque)")

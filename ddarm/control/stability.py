@@ -131,8 +131,16 @@ def modal_boundary_omega_delta(gains: np.ndarray, delay: int, zeta: float) -> fl
     gains = np.asarray(gains, dtype=float)
     if not np.all(gains > 0):
         raise StabilityError(f'the modal gains μ_k must be positive, got {gains.tolist()}')
-    roots = np.sqrt(gains)
-    return float(min(boundary_omega_delta(delay, zeta * root) / root for root in np.unique(roots)))
+    delay, zeta = _checked(delay, zeta)
+    roots = np.unique(np.sqrt(gains))
+    low, high = ZETA_RANGE[0] / roots[0], ZETA_RANGE[1] / roots[-1]
+    if not low <= zeta <= high:
+        root = roots[0] if zeta < low else roots[-1]
+        raise StabilityError(f'zeta {zeta:g} gives the mode of μ_k = {root**2:.6g} the damping ζ√μ_k = '
+                             f'{zeta * root:.6g}, outside the [{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}] the boundary '
+                             f'is computed within: this loop takes zeta within [{low * (1 + 1e-5):.6g}, '
+                             f'{high * (1 - 1e-5):.6g}]')  # rounded inward: each bound printed is taken
+    return float(min(boundary_omega_delta(delay, zeta * root) / root for root in roots))
 
 
 def sampled_loop_transition(mass_matrix: np.ndarray, stiffness: np.ndarray, damping: np.ndarray,
