@@ -180,3 +180,14 @@ def test_a_damping_whose_mode_leaves_the_computed_range_is_refused_with_the_rang
     assert main(['stability', '--controller', 'pd_gravity', '--zeta', low, '--json']) == 0
     report = strict_json(capsys.readouterr().out)
     assert all(entry['omega_delta'] > 0 for entry in report['boundaries'])
+
+
+@pytest.mark.parametrize('last, problem', [('1e-320', 'must be within'), ('1.0005', 'not a whole number')])
+def test_a_waypoint_motion_whose_last_time_no_episode_takes_is_refused_naming_the_file_and_field(capsys, tmp_path,
+                                                                                                 last, problem):
+    motion = tmp_path / 'motion.yaml'
+    motion.write_text('joint_names: [joint1, joint2, joint3]\nstart: [0.0, 0.0, 0.0]\npoints:\n'
+                      f'  - {{positions: [0.1, 0.1, 0.1], time_from_start: {last}}}\n')
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '10', '--motion', str(motion)]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and f"motion {motion}: the last point's time_from_start" in err and problem in err

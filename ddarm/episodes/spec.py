@@ -59,18 +59,28 @@ class EpisodeSpec:
     motion: str | None = None  # a motion file (ddarm.motion.files); None: the paper's trajectory `trajectory`
 
     def __post_init__(self) -> None:
+        duration_field = None  # where T came from, when it is the motion file's
         if self.duration is None:  # read here only: a spec read back from a bag needs no file
             try:
                 motion = motion_file(self).motion
             except MotionError as error:
                 raise EpisodeError(str(error)) from error
+            duration_field = ('duration' if isinstance(motion, ProgrammedMotion)
+                              else "the last point's time_from_start")
             if not motion.duration <= MAX_DURATION:
-                field, instead = (('duration', ' (or give the episode its own, --duration)')
-                                  if isinstance(motion, ProgrammedMotion) else ("the last point's time_from_start", ''))
-                raise EpisodeError(f'motion {motion_source(self)}: its {field} {motion.duration!r} s is more than '
-                                   f'{MAX_DURATION:g} s{instead}')
+                instead = ' (or give the episode its own, --duration)' if duration_field == 'duration' else ''
+                raise EpisodeError(f'motion {motion_source(self)}: its {duration_field} {motion.duration!r} s is '
+                                   f'more than {MAX_DURATION:g} s{instead}')
             object.__setattr__(self, 'duration', float(motion.duration))
-        checked_duration(self.duration, checked_period(self.period))
+        period = checked_period(self.period)
+        try:
+            checked_duration(self.duration, period)
+            sample_count(self.duration, period)
+        except (EpisodeError, ValueError) as error:
+            if duration_field is None:
+                raise EpisodeError(str(error)) from error
+            raise EpisodeError(f'motion {motion_source(self)}: {duration_field}, the episode\'s T: {error}') \
+                from error
         for name in ('kp', 'kv', 'external_torque', 'viscous_friction', 'coulomb_friction', 'mass_scale'):
             object.__setattr__(self, name, _optional_tuple(getattr(self, name)))
         if not isinstance(self.torque_limit, str):
@@ -83,7 +93,6 @@ class EpisodeSpec:
         try:
             checked_tau(self.tau, self.duration)
             checked_delay(self.delay)
-            sample_count(self.duration, self.period)
         except (GainError, ValueError) as error:
             raise EpisodeError(str(error)) from error
 
