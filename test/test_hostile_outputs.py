@@ -392,3 +392,43 @@ def test_a_campaign_that_fills_the_disk_names_the_bag_marks_the_run_failed_and_l
     assert [record['status'] for record in summary['jobs']] == ['failed', 'searched']
     assert not list(left.rglob('*.partial')) and not list(left.rglob('*.tmp'))
     assert not list((left / 'bags').iterdir())  # the job's bag, which no scorer would accept, is gone
+
+
+TERMINAL_CONTROLS = ('\x1b', '\x07', '\x9b', '\u202e', '\r')
+
+
+def assert_nothing_for_the_terminal_to_act_on(text: str) -> None:
+    assert not any(control in text for control in TERMINAL_CONTROLS), ascii(text)
+
+
+def test_a_path_holding_escape_sequences_is_shown_escaped_in_a_refusal(capfd, tmp_path):
+    path = tmp_path / 'motion\x1b]0;PWNED\x07\x1b[2J\r.yaml'
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '10', '--motion', str(path)]) == 2
+    out, err = capfd.readouterr()
+    assert_nothing_for_the_terminal_to_act_on(out + err)
+    assert 'motion<U+001B>]0;PWNED<U+0007><U+001B>[2J<U+000D>.yaml' in err
+
+
+def test_an_argument_holding_escape_sequences_is_shown_escaped_in_argparses_refusal(capfd):
+    assert_refused = pytest.raises(SystemExit)
+    with assert_refused:
+        main(['episode', '--controller', 'pd\x1b[2J'])
+    out, err = capfd.readouterr()
+    assert_nothing_for_the_terminal_to_act_on(out + err)
+    assert 'invalid choice' in err
+
+
+def test_joint_names_holding_c1_controls_and_overrides_are_shown_escaped_in_a_printed_table(capfd, tmp_path):
+    # XML forbids ESC, but not U+009B (the 8-bit CSI of many terminals) or U+202E (right-to-left override).
+    names = ['a\u009b2J', 'b\u202e1.0', 'c']
+    urdf = (ROOT / 'config' / 'ddarm.urdf').read_text()
+    for old, new in zip(('joint1', 'joint2', 'joint3'), names):
+        urdf = urdf.replace(f'"{old}"', f'"{new}"')
+    (tmp_path / 'arm.urdf').write_text(urdf, encoding='utf-8')
+    (tmp_path / 'motion.yaml').write_text(json.dumps({'joint_names': names, 'duration': 0.2, 'profile': 'bang_bang',
+                                                      'start': [0.0] * 3, 'goal': [0.1] * 3}))
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '10', '--urdf', str(tmp_path / 'arm.urdf'),
+                 '--motion', str(tmp_path / 'motion.yaml')]) == 0
+    out, err = capfd.readouterr()
+    assert_nothing_for_the_terminal_to_act_on(out + err)
+    assert 'a<U+009B>2J, b<U+202E>1.0, c' in out

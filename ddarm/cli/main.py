@@ -14,6 +14,7 @@ from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, fin
 from ddarm.cli.episode import command_episode
 from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
+from ddarm.cli.output import terminal_streams
 from ddarm.cli.reproduce import command_reproduce, job_count
 from ddarm.cli.score import command_score
 from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
@@ -124,7 +125,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    with terminal_streams():  # argparse's refusals quote the arguments, and every command prints names from files
+        return _main(sys.argv[1:] if argv is None else argv)
+
+
+def _main(argv: list[str]) -> int:
     parser = build_parser()
     args, ros_arguments = parser.parse_known_args(argv)
     if ros_arguments and not getattr(args, 'takes_ros_arguments', False):

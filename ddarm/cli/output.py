@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import sys
 
 from ddarm.errors import DdarmError
+from ddarm.reporting.text import TerminalStream
 
 
 class OutputError(DdarmError, ValueError):
@@ -32,6 +35,17 @@ def json_text(report) -> str:
         raise OutputError(f"the report holds numbers JSON cannot: {', '.join(places[:5])}"
                           + (f' and {len(places) - 5} more' if len(places) > 5 else ''))
     return json.dumps(report, allow_nan=False)
+
+
+@contextlib.contextmanager
+def terminal_streams():
+    """sys.stdout and sys.stderr as TerminalStreams within the block."""
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = TerminalStream(sys.stdout), TerminalStream(sys.stderr)
+    try:
+        yield
+    finally:
+        sys.stdout, sys.stderr = streams
 
 
 def print_json(report) -> None:

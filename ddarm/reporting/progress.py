@@ -12,6 +12,8 @@ from typing import Callable, TextIO
 
 from tqdm import tqdm
 
+from ddarm.reporting.text import TerminalStream, terminal_text
+
 # A log gains a line at most this often: enough to see a run is alive, few enough to read the log.
 PLAIN_INTERVAL_S = 5.0
 
@@ -39,8 +41,10 @@ class Progress:
         self._bar = None
         if not quiet and self.stream.isatty():
             # A bar below the first is cleared when it ends: tqdm would redraw it, finished, over the first line.
-            self._bar = tqdm(total=total, desc=label, unit='episode', file=self.stream, dynamic_ncols=True,
-                             position=position, leave=position == 0)
+            # tqdm's carriage returns and cursor moves go to the terminal itself, its texts shown as terminal_text.
+            terminal = self.stream.target if isinstance(self.stream, TerminalStream) else self.stream
+            self._bar = tqdm(total=total, desc=terminal_text(label), unit='episode', file=terminal,
+                             dynamic_ncols=True, position=position, leave=position == 0)
 
     def update(self, done: int, best: float | str | None = None) -> None:
         """`done` episodes finished so far (a count, not an increment); `best` the best index so far, a number
@@ -52,7 +56,7 @@ class Progress:
             self.best = best
         if self._bar is not None:
             if best is not None:
-                self._bar.set_postfix_str(self._best_text(), refresh=False)
+                self._bar.set_postfix_str(terminal_text(self._best_text()), refresh=False)
             self._bar.update(done - self._bar.n)
         elif self.clock() - self.last_line >= PLAIN_INTERVAL_S:
             self._write_line(final=False)

@@ -22,6 +22,7 @@ _MARKDOWN_PUNCTUATION = frozenset('\\`*_[]|')
 # is the character itself in both (an HTML tag, an entity, strikethrough, GitHub's mathematics).
 _REFERENCES = {'&': '&amp;', '<': '&lt;', '~': '&#126;', '$': '&#36;'}
 _BACKTICKS = re.compile('`+')
+_PLAIN_ASCII = re.compile('[\n\t\x20-\x7e]*')
 
 
 def visible(text, pictures: bool = True) -> str:
@@ -38,6 +39,17 @@ def visible(text, pictures: bool = True) -> str:
         else:
             shown.append(f'<U+{ord(character):04X}>')
     return ''.join(shown)
+
+
+def terminal_text(text) -> str:
+    """`text` (str() of it) for a terminal: every invisible character but a line feed or a tab shown as
+    <U+XXXX>. An escape sequence in a joint name or a path (ESC [ 2 J) would otherwise clear the screen, retitle
+    the window or rewrite the lines printed before it."""
+    text = str(text)
+    if _PLAIN_ASCII.fullmatch(text):
+        return text
+    return ''.join(character if character in '\n\t' or unicodedata.category(character) not in _INVISIBLE_CATEGORIES
+                   else f'<U+{ord(character):04X}>' for character in text)
 
 
 def figure_text(text) -> str:
@@ -71,3 +83,18 @@ def markdown_code(text) -> str:
     padding = ' ' if shown[:1] == '`' or shown[-1:] == '`' or not shown.strip() else ''
     return f'{fence}{padding}{shown}{padding}{fence}'
 
+
+class TerminalStream:
+    """A text stream that writes what it is given through terminal_text to `target`: everything a command prints
+    (tables, messages, warnings) holds names and paths from files. `target` stays reachable for a progress bar,
+    whose own carriage returns and escapes must reach the terminal."""
+
+    def __init__(self, target) -> None:
+        self.target = target
+
+    def write(self, text: str) -> int:
+        self.target.write(terminal_text(text))
+        return len(text)
+
+    def __getattr__(self, name: str):
+        return getattr(self.target, name)
