@@ -53,15 +53,17 @@ def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
         raise DataFileError(f'{path} is not UTF-8 text ({error})') from None
 
 
-def _metadata_problem(text: str) -> str | None:
+def plain_yaml_problem(text: str, reader: str) -> str | None:
+    """What makes `text` more than plain YAML data (an anchor or alias, more than MAX_DEPTH levels), said as
+    `reader` ('which rosbag2 never writes') has it; None for plain data. yaml.YAMLError for YAML that is not."""
     depth = 0
     for event in yaml.parse(text, Loader=SAFE_LOADER):
         if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None) is not None:
-            return 'holds a YAML anchor or alias, which rosbag2 never writes'
+            return f'holds a YAML anchor or alias, {reader}'
         if isinstance(event, yaml.CollectionStartEvent):
             depth += 1
             if depth > MAX_DEPTH:
-                return f'nests more than {MAX_DEPTH} levels deep, which rosbag2 never writes'
+                return f'nests more than {MAX_DEPTH} levels deep, {reader}'
         elif isinstance(event, yaml.CollectionEndEvent):
             depth -= 1
     return None
@@ -75,7 +77,7 @@ def bag_metadata_text(bag: Path | str) -> str:
     path = Path(bag)
     try:
         text = read_data_file(path / 'metadata.yaml', MAX_METADATA_BYTES)
-        problem = _metadata_problem(text)
+        problem = plain_yaml_problem(text, 'which rosbag2 never writes')
     except (OSError, DataFileError, yaml.YAMLError) as error:
         raise DataFileError(f'{path}: unreadable bag: metadata.yaml: {" ".join(str(error).split())}') from error
     if problem is not None:

@@ -6,7 +6,6 @@ import sys
 import time
 
 import numpy as np
-import yaml
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -16,6 +15,7 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.ros.executable import run_executable
 from ddarm.ros.executors import node_executor
+from ddarm.ros.parameter_files import parameter_document
 from ddarm.ros.interface import (descriptor, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
                                  undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
@@ -93,15 +93,15 @@ class TunerNode(GraphDriver):
         values = self.values
         if values['gains_file']:
             try:
-                with open(values['gains_file']) as file:
-                    document = yaml.safe_load(file)
+                document = parameter_document(values['gains_file'])
                 gains = document[values['controller']]['ros__parameters']
                 # Read by the controller node's own rule: gains.<joint>.p/.d or the positional kp/kv.
                 joints = read_motion_file(values['motion'] or None, values['trajectory']).joint_names
                 kp, kv = given_gains({**flat_parameters(gains), 'omega': 0.0}, list(joints))
                 delay, period = gains.get('compute_delay_steps', values['delay']), gains.get('period')
-            except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError) as error:
-                # ValueError: not UTF-8, or gains the controller would refuse (GainError, MotionError)
+            except (ValueError, KeyError, TypeError, AttributeError) as error:
+                # ValueError: a file beyond its bounds or not YAML (ParameterFileError), or gains the controller
+                # would refuse (GainError, MotionError)
                 raise EpisodeError(f"gains_file {values['gains_file']}: no {values['controller']} gains "
                                    f'({type(error).__name__}: {error})') from error
             if period is not None and period != values['period']:

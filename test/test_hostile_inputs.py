@@ -318,3 +318,22 @@ def test_a_bag_whose_storage_file_is_no_regular_file_inside_it_is_refused_withou
         assert named in capsys.readouterr().err
     finally:
         guard.cancel()
+
+
+def test_a_parameter_file_holding_an_alias_bomb_is_refused_before_it_is_expanded(tmp_path):
+    from ddarm.ros.parameter_files import ParameterFileError, parameter_document
+
+    path = tmp_path / 'controller.yaml'
+    path.write_text(f'controller:\n  ros__parameters:\n    kp: {alias_bomb(9)}\n')
+    message = refused_within_memory(ParameterFileError, parameter_document, str(path))
+    assert message.startswith(f'parameter file {path} holds a YAML anchor or alias'), message
+
+
+def test_a_parameter_file_larger_than_its_bound_is_refused_unread(tmp_path):
+    from ddarm.ros.parameter_files import ParameterFileError, parameter_document
+
+    path = tmp_path / 'controller.yaml'
+    with path.open('wb') as file:
+        file.truncate(MAX_FILE_BYTES + 1)
+    with pytest.raises(ParameterFileError, match=f'holds {MAX_FILE_BYTES + 1} bytes'):
+        parameter_document(str(path))

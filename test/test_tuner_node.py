@@ -17,6 +17,7 @@ from ddarm.episodes.spec import EpisodeError, EpisodeSpec
 from ddarm_tuner.node import TunerNode
 from ddarm.recording.runs import RunFolder
 from process_helpers import stop
+from test_hostile_inputs import alias_bomb
 
 GAINS = {'computed_torque': ([900.0] * 3, [60.0] * 3, 1),
          'pd_gravity': ([28000.0, 27000.0, 3500.0], [1760.0, 1700.0, 220.0], 0)}
@@ -101,7 +102,7 @@ def test_sigterm_stops_the_tuner_and_every_finished_bag_reads_back(tmp_path):
                 score_bag(bag)
 
 
-def test_tuner_parameter_typos_are_refused(ros_context):
+def test_tuner_parameter_typos_are_refused(ros_context, tmp_path):
     with pytest.raises(EpisodeError, match='kp needs 3'):
         TunerNode(context=ros_context, parameter_overrides=[Parameter('kp', value=[1.0, 2.0]),
                                                             Parameter('kv', value=[1.0, 2.0, 3.0])])
@@ -109,6 +110,10 @@ def test_tuner_parameter_typos_are_refused(ros_context):
         TunerNode(context=ros_context, parameter_overrides=[Parameter('tau', value=0.1)])
     with pytest.raises(EpisodeError, match='gains_file'):
         TunerNode(context=ros_context, parameter_overrides=[Parameter('gains_file', value='/nonexistent.yaml')])
+    bomb = tmp_path / 'gains.yaml'
+    bomb.write_text('computed_torque:\n  ros__parameters:\n    kp: ' + alias_bomb(9) + '\n')
+    with pytest.raises(EpisodeError, match=f'gains_file {bomb}: .*anchor or alias'):
+        TunerNode(context=ros_context, parameter_overrides=[Parameter('gains_file', value=str(bomb))])
 
 
 def test_a_node_that_dies_during_a_sweep_is_named(tmp_path):

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 
 import yaml
 
+from ddarm.datafiles import SAFE_LOADER, DataFileError, plain_yaml_problem, read_data_file
 from ddarm.errors import DdarmError
 
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
@@ -74,15 +75,21 @@ def _node_parameters(mapping: dict, namespace: str = '') -> list[tuple[str, obje
     return nodes
 
 
-def _document(path: str) -> dict:
+def parameter_document(path: str) -> dict:
+    """The file's YAML, read within the bounds of ddarm.datafiles and, as rcl's parameter parser reads it,
+    without anchors or aliases (a few hundred bytes of aliases expand to gigabytes)."""
     try:
-        with open(path, encoding='utf-8') as stream:
-            document = yaml.safe_load(stream)
-    except (OSError, UnicodeDecodeError) as error:
+        text = read_data_file(path)
+        problem = plain_yaml_problem(text, "and ROS 2's parameter parser refuses aliases ('Will not support "
+                                           "aliasing')")
+        document = yaml.load(text, Loader=SAFE_LOADER) if problem is None else None
+    except (OSError, DataFileError) as error:
         raise ParameterFileError(f'parameter file {path} cannot be read: {error}') from error
     except yaml.YAMLError as error:
         flat = ' '.join(str(error).split())
         raise ParameterFileError(f'parameter file {path} is not valid YAML: {flat}') from error
+    if problem is not None:
+        raise ParameterFileError(f'parameter file {path} {problem}')
     if not isinstance(document, dict):
         raise ParameterFileError(f'parameter file {path} is not a mapping of node names to {PARAMETERS_KEY} '
                                  f"(it holds {'nothing' if document is None else type(document).__name__})")
@@ -91,7 +98,7 @@ def _document(path: str) -> dict:
 
 def node_keys(path: str) -> list[str]:
     """The node names (as written, namespaces joined) whose `ros__parameters` the file holds."""
-    document = _document(path)
+    document = parameter_document(path)
     keys = [key for key, _ in _node_parameters(document)]
     if not keys:
         raise ParameterFileError(f'parameter file {path} configures no node: no {PARAMETERS_KEY} under a node '
@@ -144,7 +151,7 @@ def given_parameters(arguments: Sequence[str], fully_qualified_name: str) -> lis
     names = []
     for flag, value in _flag_values(arguments):
         if flag == PARAMS_FILE:
-            for key, parameters in _node_parameters(_document(value)):
+            for key, parameters in _node_parameters(parameter_document(value)):
                 if configures(key, fully_qualified_name):
                     names.extend(_parameter_names(parameters))
         elif flag in PARAM_FLAGS:
