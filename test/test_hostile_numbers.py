@@ -191,3 +191,17 @@ def test_a_waypoint_motion_whose_last_time_no_episode_takes_is_refused_naming_th
     assert main(['episode', '--controller', 'pd_gravity', '--omega', '10', '--motion', str(motion)]) == 2
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and f"motion {motion}: the last point's time_from_start" in err and problem in err
+
+
+def test_a_run_summary_never_holds_a_number_json_cannot(tmp_path):
+    from ddarm.recording.runs import RunFolder
+    from ddarm.strict_json import OutputError
+
+    with RunFolder('strict', root=tmp_path) as run:
+        run.record('best', {'I': 0.25})
+        with pytest.raises(OutputError, match=r'best\.I = inf'):
+            run.record('best', {'I': float('inf')})
+        assert strict_json((run.path / 'summary.json').read_text())['best'] == {'I': 0.25}
+        run.finish('complete')  # the refused value is not the run's: the run still ends with its summary
+    summary = strict_json((run.path / 'summary.json').read_text())
+    assert summary['best'] == {'I': 0.25} and summary['status'] == 'complete'

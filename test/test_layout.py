@@ -30,7 +30,7 @@ def test_no_core_module_loads_rclpy(module):
 
 # The layers, upstream first: a module may import its own layer and the ones before it, never a later one.
 LAYERS = (
-    ('ddarm.errors', 'ddarm.arrays', 'ddarm.samples', 'ddarm.datafiles', 'ddarm.interrupts', 'ddarm.realtime'),
+    ('ddarm.errors', 'ddarm.arrays', 'ddarm.samples', 'ddarm.datafiles', 'ddarm.strict_json', 'ddarm.interrupts', 'ddarm.realtime'),
     ('ddarm.physics',),
     ('ddarm.motion',),
     ('ddarm.control',),

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from ddarm.cli.arguments import absolute_path, whole_number
+from ddarm.cli.output import print_json
 from ddarm.episodes.bench import (BATCH_SIZES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES, batch_rates,
                                   reference_case, run_bench)
 from ddarm.physics.arm import config_file
@@ -38,7 +38,7 @@ def command_bench(args: argparse.Namespace) -> int:
 
         figures['ros'] = lockstep_and_round_trips(args.ros_rounds)
     if args.json:
-        print(json.dumps(figures))
+        print_json(figures)
         return 0
     print(f"ddarm bench: {figures['case']}; gains x exp({GAIN_SPREAD} N(0, 1)) per episode (seed "
           f"{figures['seed']}); {figures['substeps']} RK4 substeps")

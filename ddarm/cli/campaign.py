@@ -4,13 +4,13 @@ then checked through the ROS graph, one run folder and one summary for all."""
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
 
 from tqdm import tqdm
 
+from ddarm.cli.output import print_json
 from ddarm.cli.reproduce import job_count
 from ddarm.recording.bags import BagError
 from ddarm.reporting.progress import Progress
@@ -62,7 +62,7 @@ def command_campaign(args: argparse.Namespace) -> int:
                                       lambda jobs, on_progress, on_done: run_jobs(
                                           jobs, workers, on_progress=on_progress, on_done=on_done))
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print_campaign(summary, path)
     return 0 if not summary['failed'] else 1

@@ -4,7 +4,6 @@ single-index optima of `ddarm tune`'s search."""
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ddarm.cli.arguments import add_episode_arguments, episode_spec
-from ddarm.cli.output import format_vector
+from ddarm.cli.output import format_vector, print_json
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.spec import arm_joints, check_episode
 from ddarm.recording.bags import BagError, checked_output_path
@@ -184,7 +183,7 @@ def command_pareto(args: argparse.Namespace) -> int:
         front_figure(plot, report)
         report['plot'] = str(plot)
     if args.json:
-        print(json.dumps(report))
+        print_json(report)
     else:
         print_front(report)
     return 0

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import shlex
 import sys
 import time
@@ -14,6 +13,7 @@ from tqdm import tqdm
 from ddarm.cli.arguments import whole_number
 from ddarm.interrupts import critical_section
 from ddarm.reporting.progress import Progress
+from ddarm.strict_json import json_text
 
 
 MAX_JOBS = 64
@@ -68,7 +68,7 @@ def command_reproduce(args: argparse.Namespace) -> int:
             from ddarm.paper.report import write_report
             from ddarm.paper.schema import Results
 
-            (out / 'results.json').write_text(json.dumps(results.to_json(), indent=2))
+            (out / 'results.json').write_text(json_text(results.to_json(), indent=2))
             # The report reads the file back through the schema: what it shows is what results.json holds.
             written = write_report(out, Results.load(out / 'results.json'))
             run.finish('complete', report=str(out / 'REPORT.md'))

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from ddarm.cli.output import print_summary
+from ddarm.cli.output import print_json, print_summary
 
 
 def command_score(args: argparse.Namespace) -> int:
@@ -26,7 +25,7 @@ def command_score(args: argparse.Namespace) -> int:
             print(f'ddarm score: {error if named else f"{bag}: {error}"}', file=sys.stderr)
             continue
         if args.json:
-            print(json.dumps(summary))
+            print_json(summary)
         else:
             print(bag)
             print_summary(summary)

@@ -17,6 +17,7 @@ from ddarm.episodes.indices import INDICES
 from ddarm.errors import DdarmError
 from ddarm.recording.bags import BagError, checked_output_path, child_path
 from ddarm.interrupts import Interrupted, critical_section
+from ddarm.strict_json import json_text
 
 DEFAULT_ROOT = Path('runs')
 SUMMARY_NAME = 'summary.json'
@@ -106,7 +107,7 @@ class RunFolder:
         self.log.addHandler(self._handler)
         self.log.info('run %s: %s', name, command)
         try:
-            self._write_summary()
+            self._write_summary(self.summary)
         except BaseException:
             self._close_log()
             raise
@@ -134,15 +135,13 @@ class RunFolder:
         return child_path(self.path / 'bags', episode_name)
 
     def add_episode(self, record: dict) -> None:
-        self.summary['episodes'].append(record)
+        self._write_summary({**self.summary, 'episodes': [*self.summary['episodes'], record]})
         self.log.info('episode %s: %s', record.get('name'), json.dumps(
             {key: record.get(key) for key in (*INDICES, 'diverged', 'bag')}))
-        self._write_summary()
 
     def record(self, key: str, value) -> None:
         """`value` in the summary as `key`, written at once (a part of the run that is not one episode's record)."""
-        self.summary[key] = value
-        self._write_summary()
+        self._write_summary({**self.summary, key: value})
 
     def write_text(self, name: str, text: str) -> Path:
         path = write_new_text(self.path / name, text)
@@ -161,10 +160,10 @@ class RunFolder:
         if self.finished:
             return
         with critical_section():  # the summary's last word is written whole, whatever signal comes
-            self.summary.update(status=status, finished=time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra)
+            summary = {**self.summary, 'status': status, 'finished': time.strftime('%Y-%m-%dT%H:%M:%S%z'), **extra}
             if self._handler.failure:
-                self.summary['log_failure'] = self._handler.failure
-            self._write_summary()
+                summary['log_failure'] = self._handler.failure
+            self._write_summary(summary)
             self.log.info('run %s', status)
             self._close_log()
             self.finished = True
@@ -194,14 +193,18 @@ class RunFolder:
                 raise BagError(f'{reason}; and the run could not be marked failed: {cleanup}') from error
             error.add_note(f'while marking the run folder {self.path}: {type(cleanup).__name__}: {cleanup}')
 
-    def _write_summary(self) -> None:
-        summary, partial = self.path / SUMMARY_NAME, self.path / f'{SUMMARY_NAME}.partial'
+    def _write_summary(self, summary: dict) -> None:
+        """Write `summary` and make it the run's: one that JSON cannot hold or the disk cannot take is refused, and
+        the summary written before stays the run's."""
+        path, partial = self.path / SUMMARY_NAME, self.path / f'{SUMMARY_NAME}.partial'
+        text = json_text(summary, indent=2)
         try:
-            partial.write_text(json.dumps(self.summary, indent=2))
-            partial.replace(summary)  # atomic: a reader never sees half a summary
+            partial.write_text(text)
+            partial.replace(path)  # atomic: a reader never sees half a summary
         except OSError as error:
             partial.unlink(missing_ok=True)
-            raise BagError(f'{summary}: cannot write the summary: {error.strerror or error}') from error
+            raise BagError(f'{path}: cannot write the summary: {error.strerror or error}') from error
+        self.summary = summary
 
 
 class _RunLog(logging.FileHandler):
