@@ -337,3 +337,18 @@ def test_a_parameter_file_larger_than_its_bound_is_refused_unread(tmp_path):
         file.truncate(MAX_FILE_BYTES + 1)
     with pytest.raises(ParameterFileError, match=f'holds {MAX_FILE_BYTES + 1} bytes'):
         parameter_document(str(path))
+
+
+@pytest.mark.parametrize('episode, named', [
+    ({'test': True}, 'holds no spec'), ({'spec': {'period': 'x'}, 'joints': ['a']}, "holds the spec period 'x'"),
+    ({'spec': {'period': 0.01}, 'joints': 'a'}, 'holds no joints'), ([1, 2], 'holds no spec'),
+])
+def test_a_bag_whose_episode_configuration_is_not_ddarms_is_refused_naming_the_field(tmp_path, capsys, episode,
+                                                                                     named):
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, episode) as writer:
+        writer.close(complete=True)
+    with pytest.raises(BagError, match=f'{bag}: /ddarm/episode {named}'):
+        score_bag(bag)
+    assert main(['score', str(bag)]) == 2
+    assert 'not the configuration ddarm records' in capsys.readouterr().err

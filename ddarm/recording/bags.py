@@ -461,9 +461,7 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
             received.append(deserialize(raw, connection.msgtype))
     if not messages[EPISODE_TOPIC]:
         raise BagError(f'{path}: {EPISODE_TOPIC} holds no configuration')
-    episode = json.loads(messages[EPISODE_TOPIC][0].data)
-    period = float(episode['spec']['period'])
-    joints = list(episode['joints'])
+    episode, period, joints = _episode_configuration(path, messages[EPISODE_TOPIC][0].data)
     if len(joints) > MAX_JOINTS:
         raise BagError(f'{path}: {EPISODE_TOPIC} names {len(joints)} joints, more than the {MAX_JOINTS} an arm may '
                        'have')
@@ -495,6 +493,32 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
         order = _in_order(message.name, joints, '/effort_command')
         commands[n] = _values(path, message.effort, f'/effort_command sample {n}', 'effort', joints)[order]
     return BagEpisode(episode, status, joints, times, q_ref, v_ref, a_ref, nominal, states, commands, path)
+
+
+def _refuse_constant(constant: str):
+    raise ValueError(f'{constant} is no JSON number')
+
+
+def _episode_configuration(path: Path, text: str) -> tuple[dict, float, list[str]]:
+    """The configuration on /ddarm/episode, its period and joints; BagError naming the field that is missing or
+    not what ddarm writes there."""
+    def refused(problem: str) -> BagError:
+        return BagError(f'{path}: {EPISODE_TOPIC} {problem}: not the configuration ddarm records')
+
+    try:
+        episode = json.loads(text, parse_constant=_refuse_constant)
+    except (ValueError, RecursionError) as error:
+        raise refused(f'is not JSON ({type(error).__name__}: {error})') from error
+    spec = episode.get('spec') if isinstance(episode, dict) else None
+    if not isinstance(spec, dict):
+        raise refused('holds no spec (a JSON object under "spec")')
+    period = spec.get('period')
+    if isinstance(period, bool) or not isinstance(period, (int, float)) or not period > 0:
+        raise refused(f'holds the spec period {period!r}, not a positive number of s')
+    joints = episode.get('joints')
+    if not (isinstance(joints, list) and joints and all(isinstance(name, str) for name in joints)):
+        raise refused('holds no joints (a list of joint names under "joints")')
+    return episode, float(period), joints
 
 
 def _values(path: Path, values, what: str, field: str, joints: list) -> np.ndarray:
