@@ -161,6 +161,33 @@ def test_a_user_cache_folder_others_may_write_is_left_for_a_private_one_saying_w
     assert dynamics.cache_folder() == tmp_path / 'tmp' / f'ddarm-{os.getuid()}'
 
 
+def test_a_user_cache_folder_inside_a_folder_others_may_write_is_left_without_making_anything_there(
+        tmp_path, monkeypatch, capsys, no_chain_loaded):
+    monkeypatch.setattr(dynamics, '_said', set())
+    monkeypatch.delenv(dynamics.CACHE_ENVIRONMENT, raising=False)
+    hostile = shared(tmp_path / 'shared')
+    monkeypatch.setenv('XDG_CACHE_HOME', str(hostile))
+    (tmp_path / 'tmp').mkdir()
+    monkeypatch.setenv('TMPDIR', str(tmp_path / 'tmp'))
+    monkeypatch.setattr(dynamics.tempfile, 'tempdir', None)
+    assert dynamics.cache_folder() == tmp_path / 'tmp' / f'ddarm-{os.getuid()}'
+    assert list(hostile.iterdir()) == []  # a ddarm/ made there would be a folder others could swap
+    said = capsys.readouterr().err.splitlines()
+    assert len(said) == 1 and str(hostile / 'ddarm') in said[0] and 'others may write' in said[0]
+
+
+def test_a_relative_xdg_cache_home_is_ignored_as_the_xdg_specification_says(tmp_path, monkeypatch, capsys,
+                                                                             no_chain_loaded):
+    monkeypatch.setattr(dynamics, '_said', set())
+    monkeypatch.delenv(dynamics.CACHE_ENVIRONMENT, raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv('XDG_CACHE_HOME', 'relative-cache')
+    monkeypatch.setenv('HOME', str(tmp_path / 'home'))
+    assert dynamics.cache_folder() == tmp_path / 'home' / '.cache' / 'ddarm'
+    assert not (tmp_path / 'relative-cache').exists()
+    assert 'ignoring XDG_CACHE_HOME=relative-cache: not an absolute path' in capsys.readouterr().err
+
+
 def load_from_disk(chain) -> dynamics.Dynamics:
     """The chain's dynamics as a new process gets them: its module run again, numba's cache read."""
     sys.modules.pop(module_name(chain), None)
@@ -331,7 +358,8 @@ def test_a_spoiled_cache_file_of_the_compiled_loops_is_discarded_saying_so_and_r
     cache, expected = warm_cache
     stem = module.rsplit('.', 1)[1]
     folder = loops_folder(cache, module)
-    files = sorted(folder.glob(f'{stem}.{function}-*.{"nbi" if kind == "index" else "nbc"}'))
+    line = loop_dispatchers()[f'{module}.{function}'].py_func.__code__.co_firstlineno  # older lines' files stay
+    files = sorted(folder.glob(f'{stem}.{function}-{line}.*{"nbi" if kind == "index" else "nbc"}'))
     assert len(files) == 1, sorted(folder.iterdir())
     spoil(files[0])
     report, said = run_loops({dynamics.CACHE_ENVIRONMENT: str(cache)})

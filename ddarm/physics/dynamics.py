@@ -187,6 +187,9 @@ def _why_not_private(folder: Path) -> str | None:
     """Why numba may not load code from `folder` (made if missing), or None: it unpickles what it finds there, so
     the folder must be this user's, writable by no one else, and so must every folder above it be (root's or this
     user's, and writable by others only with the sticky bit, as /tmp), or someone else could replace it."""
+    why = _why_parents_unsafe(folder)  # before anything is made inside a folder others may write
+    if why is not None:
+        return why
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         status = os.lstat(folder)
@@ -200,8 +203,16 @@ def _why_not_private(folder: Path) -> str | None:
         return f'is writable by {"others" if status.st_mode & 0o002 else "its group"} (mode {status.st_mode & 0o777:o})'
     if not os.access(folder, os.W_OK | os.X_OK):
         return 'cannot be written by this user'
+    return _why_parents_unsafe(folder)
+
+
+def _why_parents_unsafe(folder: Path) -> str | None:
+    """Why someone else could replace `folder` through a folder above it (one not made yet is skipped), or None."""
     for parent in folder.parents:
-        status = os.stat(parent)
+        try:
+            status = os.stat(parent)
+        except FileNotFoundError:
+            continue
         if status.st_uid not in (0, os.getuid()):
             return f'is inside {parent}, owned by user {status.st_uid}, who could replace it'
         if status.st_mode & 0o022 and not status.st_mode & stat.S_ISVTX:
@@ -221,7 +232,11 @@ def cache_folder() -> Path:
             raise ModelError(f'the dynamics cache {folder} (${CACHE_ENVIRONMENT}) {why}: numba runs the pickled code '
                              f'it finds there; set {CACHE_ENVIRONMENT} to a folder only this user can write')
         return folder
-    base = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    base = os.environ.get('XDG_CACHE_HOME')
+    if base and not os.path.isabs(base):  # the XDG specification: a relative path is invalid, to be ignored
+        _say_once(f'ignoring XDG_CACHE_HOME={base}: not an absolute path')
+        base = None
+    base = base or os.path.join(os.path.expanduser('~'), '.cache')
     for folder in (Path(base) / 'ddarm', Path(tempfile.gettempdir()) / f'ddarm-{os.getuid()}'):
         folder = folder.resolve()
         why = _why_not_private(folder)
