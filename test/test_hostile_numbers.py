@@ -30,7 +30,7 @@ def refused_by_the_parser(capsys, arguments: list[str], option: str) -> str:
     except SystemExit as stop:
         code = stop.code
     captured = capsys.readouterr()
-    quantity = {'--period': 'period', '--duration': 'duration'}[option]
+    quantity = {'--period': 'period', '--duration': 'duration', '--tau': 'tau'}[option]
     assert code == 2 and 'Traceback' not in captured.err, captured.err
     assert len(captured.err.strip().splitlines()) == 1 and quantity in captured.err, captured.err
     assert captured.out == ''
@@ -205,3 +205,11 @@ def test_a_run_summary_never_holds_a_number_json_cannot(tmp_path):
         run.finish('complete')  # the refused value is not the run's: the run still ends with its summary
     summary = strict_json((run.path / 'summary.json').read_text())
     assert summary['best'] == {'I': 0.25} and summary['status'] == 'complete'
+
+
+@pytest.mark.parametrize('value', ['-1e-3', '-1E+2', '-.5e1', '-inf'])
+def test_a_negative_number_in_exponent_form_is_a_value_not_an_option(capsys, value):
+    # argparse took -1e-3 for an option: 'expected one argument', not the quantity's own refusal.
+    err = refused_by_the_parser(capsys, ['episode', '--controller', 'pd_gravity', '--omega', '10', '--tau', value],
+                                '--tau')
+    assert ('not a finite number' if value == '-inf' else 'tau must be') in err and 'expected one' not in err

@@ -8,6 +8,7 @@ SIGTERM exits 128 + the signal, and anything else is a bug whose traceback shows
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite, whole_number
@@ -31,8 +32,18 @@ from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 
 
+# A negative decimal number as float() reads it (no ddarm option looks like one).
+_NEGATIVE_NUMBER = re.compile(r'^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|inf|infinity|nan)$', re.IGNORECASE)
+
+
 class _OneLineParser(argparse.ArgumentParser):
-    """argparse's parser whose refusal is one line, as every other refusal of ddarm's (its usage is in --help)."""
+    """argparse's parser whose refusal is one line, as every other refusal of ddarm's (its usage is in --help),
+    and which takes `-1e-3` and `-inf` as the negative numbers they are: Python 3.11's argparse reads only -1 and
+    -0.5 so, and any other as an option (the private attribute is argparse's one hook for it)."""
+
+    def __init__(self, *arguments, **options) -> None:
+        super().__init__(*arguments, **options)
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str):
         self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
