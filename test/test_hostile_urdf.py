@@ -175,6 +175,8 @@ UNREADABLE_JOINTS = [
     ('the zero axis', j2_with(axis='0 0 0'), ['<axis>']),
     ('effort overflowing', j2_with(effort='1e999'), ['effort', '1e999']),
     ('effort negative', j2_with(effort='-5'), ['effort', '-5']),
+    ('its own parent', joint('j2', 'revolute', 'l2', 'l2', '0 0 0.2', axis='0 1 0', effort=100),
+     ['both its parent and its child']),
     ('velocity a word', j2_with(velocity='fast'), ['velocity', 'fast']),
     ('lower above upper', j2_with(lower=1.0, upper=-1.0), ['lower', 'upper']),
     ('no limit', '<joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><axis xyz="0 1 0"/></joint>',

@@ -310,6 +310,9 @@ def _joint(path: Path, element, links) -> UrdfJoint:
     if kind not in (*MOVABLE, 'fixed'):
         raise ModelError(f'URDF {path}: {where} has type {kind!r}, which URDF does not define')
     parent, child = (_link_name(path, where, element, tag, links) for tag in ('parent', 'child'))
+    if parent == child:
+        raise ModelError(f'URDF {path}: {where} has link {parent!r} as both its parent and its child: a joint '
+                         f'joins two links')
     origin = _origin(path, where, element)
     axis = None
     if kind != 'fixed':  # urdfdom reads no <axis> of a fixed joint
@@ -485,7 +488,7 @@ def _check_readers_agree(path: Path, description: UrdfDescription, model: pin.Mo
     """Refuse a URDF Pinocchio (urdfdom) built otherwise than ddarm read it: joints, their types, limits, axes and
     frames, links and the inertia each joint moves. What ddarm checks and reports must be what it simulates."""
     def disagree(element, ours, theirs):
-        return ModelError(f'URDF {path}: {element} is {ours} as ddarm reads the file and {theirs} as Pinocchio '
+        return ModelError(f'URDF {path}: {element}: {ours} as ddarm reads the file and {theirs} as Pinocchio '
                           f'(urdfdom) builds it: refused, since what ddarm checks and reports would not be what it '
                           f'simulates')
     movable = [name for name, joint in description.joints.items() if joint.kind in MOVABLE]
@@ -544,7 +547,7 @@ def _check_readers_agree(path: Path, description: UrdfDescription, model: pin.Mo
         theirs = model.inertias[joint_id]
         if not (abs(mass - theirs.mass) <= 1e-9 * max(mass, theirs.mass) and _close(ours, theirs.matrix())):
             lever = sum(inertia.mass * inertia.lever for inertia in inertias) / mass if mass > 0 else np.zeros(3)
-            raise disagree(f'the <inertial> of links {carried}, which joint {name!r} moves,',
+            raise disagree(f'the <inertial> of links {carried}, which joint {name!r} moves',
                            f'mass {mass!r} at {lever.tolist()}', f'mass {theirs.mass!r} at {theirs.lever.tolist()}')
 
 
