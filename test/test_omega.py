@@ -77,11 +77,15 @@ def test_a_chosen_omega_beyond_the_coupled_loops_boundary_is_warned(capsys, tmp_
     assert main(['omega', '--controller', 'pd_gravity', '--delay', '0', '--max-error', '1.0', '--mass-error', '0',
                  '0.1', '0.1', '--torque-factor', '1.5', '--runs', str(tmp_path), '--run', 'pd', '--json']) == 0
     captured = capsys.readouterr()
-    chosen = json.loads(captured.out)['omega']
+    report = json.loads(captured.out)
+    chosen = report['omega']
     assert chosen > 12.56
     [warning] = [line for line in captured.err.splitlines() if 'stability boundary' in line]
     assert warning.startswith(f'ddarm omega: WARNING: the gains of the chosen ω = {chosen:.6g}')
     assert 'joint3' in warning
+    # Beside the numbers it doubts, in the JSON and in the run's summary, not only on the terminal.
+    summary = json.loads((tmp_path / 'pd' / 'summary.json').read_text())
+    assert warning.removeprefix('ddarm omega: WARNING: ') in report['warnings'] == summary['omega']['warnings']
     # Computed torque's boundary at d = 1 is ω* = 42.6 (an exact model: the per-joint one): 44.4 passes the torque
     # conditions here, 30 is below it.
     for omega_max, warned in (('100', True), ('30', False)):

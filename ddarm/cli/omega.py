@@ -41,12 +41,13 @@ def command_omega(args: argparse.Namespace) -> int:
     prismatic = np.array(plan.prismatic, dtype=bool)
     permitted = np.where(prismatic, np.asarray(args.max_error) * 1e-3, np.radians(args.max_error))
     choice = omega_procedure(spec, permitted, args.torque_factor, args.omega_step, args.omega_max)
+    stability_warnings = () if choice.omega is None else tuple(loop_stability_warnings(
+        dataclasses.replace(spec, kp=tuple(choice.kp), kv=tuple(choice.kv)),
+        f'the gains of the chosen ω = {choice.omega:.6g}'))
     with run_folder('omega', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
-        report = finish_omega(run, spec, plan, choice, args.out)
-    if choice.omega is not None:
-        chosen = dataclasses.replace(spec, kp=tuple(choice.kp), kv=tuple(choice.kv))
-        for warning in loop_stability_warnings(chosen, f'the gains of the chosen ω = {choice.omega:.6g}'):
-            print(f'ddarm omega: WARNING: {warning}', file=sys.stderr)
+        report = finish_omega(run, spec, plan, choice, args.out, (*plan.warnings, *stability_warnings))
+    for warning in stability_warnings:
+        print(f'ddarm omega: WARNING: {warning}', file=sys.stderr)
     if args.json:
         print_json(report)
     else:

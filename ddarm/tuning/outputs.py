@@ -53,7 +53,8 @@ def write_gains(run: RunFolder, kp, kv, spec: EpisodeSpec, provenance: str, out:
     return written
 
 
-def finish_omega(run: RunFolder, spec: EpisodeSpec, plan: EpisodePlan, choice, out: str | None = None) -> dict:
+def finish_omega(run: RunFolder, spec: EpisodeSpec, plan: EpisodePlan, choice, out: str | None = None,
+                 warnings: tuple[str, ...] = ()) -> dict:
     """Section 2's procedure done: its report in the run's summary, the gains written if an ω was chosen.
 
     Returns the report (the JSON of `ddarm omega`).
@@ -70,7 +71,7 @@ def finish_omega(run: RunFolder, spec: EpisodeSpec, plan: EpisodePlan, choice, o
               'kv': None if choice.kv is None else choice.kv.tolist(),
               'indices': choice.steps[-2 if not choice.steps[-1].accepted else -1].indices
               if choice.omega is not None else None,
-              'steps': steps, 'spec': spec.to_dict(), 'command': run.summary['command']}
+              'steps': steps, 'spec': spec.to_dict(), 'command': run.summary['command'], 'warnings': list(warnings)}
     if choice.omega is not None:
         report['gains_files'] = write_gains(run, choice.kp, choice.kv, spec,
                                             f"ω = {choice.omega} from: {report['command']}", out)
