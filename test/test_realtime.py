@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 import pytest
-import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 

@@ -6,7 +6,6 @@ import time
 
 import numpy as np
 import pytest
-from builtin_interfaces.msg import Time
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
