@@ -38,6 +38,16 @@ def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
     """The text of the data file at `path`, read only once it is known to be a regular file of at most `limit`
     bytes (a FIFO or a device would block or never end); OSError for what the OS refuses."""
     path = Path(path)
+    data = read_data_bytes(path, limit)
+    try:
+        return data.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise DataFileError(f'{path} is not UTF-8 text ({error})') from None
+
+
+def read_data_bytes(path: Path | str, limit: int = MAX_FILE_BYTES) -> bytes:
+    """The bytes of the file at `path`, as read_data_file reads them, not decoded."""
+    path = Path(path)
     status = os.stat(path)
     if not stat.S_ISREG(status.st_mode):
         raise DataFileError(f'{path} is not a regular file')
@@ -47,10 +57,7 @@ def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
         data = file.read(status.st_size + 1)  # one byte more shows a file that grew since the stat
     if len(data) > status.st_size:
         raise DataFileError(f'{path} grew while it was read')
-    try:
-        return data.decode('utf-8')
-    except UnicodeDecodeError as error:
-        raise DataFileError(f'{path} is not UTF-8 text ({error})') from None
+    return data
 
 
 def plain_yaml_problem(text: str, reader: str) -> str | None:

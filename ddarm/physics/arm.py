@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from ddarm.datafiles import MAX_FILE_BYTES
+from ddarm.datafiles import MAX_FILE_BYTES, DataFileError, read_data_bytes
 from ddarm.errors import DdarmError
 
 URDF_NAME = 'ddarm.urdf'
@@ -175,15 +175,11 @@ def _read_xml(path: Path) -> tuple[str, ElementTree.Element]:
     """The file's text and its root element, read as urdfdom's TinyXML2 reads them: UTF-8, no DTD; at most
     MAX_URDF_BYTES and MAX_URDF_LEVELS deep."""
     try:
-        size = path.stat().st_size
-        if size > MAX_URDF_BYTES:
-            raise ModelError(f'URDF {path} holds {size} bytes, more than the {MAX_URDF_BYTES} a URDF may')
-        with path.open('rb') as file:
-            data = file.read(MAX_URDF_BYTES + 1)
+        data = read_data_bytes(path, MAX_URDF_BYTES)
     except OSError as error:
         raise ModelError(f'URDF {path} cannot be read: {error.strerror}') from error
-    if len(data) > MAX_URDF_BYTES:
-        raise ModelError(f'URDF {path} grew beyond {MAX_URDF_BYTES} bytes while it was read')
+    except DataFileError as error:
+        raise ModelError(f'URDF {error}') from None
     try:
         text = data.decode('utf-8')
     except UnicodeDecodeError as error:
