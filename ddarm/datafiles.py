@@ -98,8 +98,12 @@ def _check_storage_files(bag: Path, metadata) -> None:
     reading a FIFO would wait for a writer for ever, a device would never end."""
     information = metadata.get('rosbag2_bagfile_information') if isinstance(metadata, dict) else None
     names = information.get('relative_file_paths') if isinstance(information, dict) else None
-    for name in names if isinstance(names, list) else ():
-        if not isinstance(name, str) or not name or Path(name).is_absolute() or '..' in Path(name).parts:
+    if names is not None and not isinstance(names, list):
+        raise DataFileError(f'{bag}: metadata.yaml: relative_file_paths is {type(names).__name__}, not a list of '
+                            f'file names')
+    for name in names or ():
+        # rosbag2 writes plain names in the bag's folder, and rosbags opens the last part of whatever is there.
+        if not isinstance(name, str) or not name or Path(name).name != name or name in ('.', '..'):
             raise DataFileError(f'{bag}: metadata.yaml: relative_file_paths entry {name!r} is not a file inside '
                                 f'the bag')
         try:

@@ -293,7 +293,7 @@ def test_ray_refuses_an_address_where_something_that_is_not_ray_listens(monkeypa
         listener.close()
 
 
-@pytest.mark.parametrize('change', ['fifo', 'outside'])
+@pytest.mark.parametrize('change', ['fifo', 'outside', 'in a subfolder', 'not a list'])
 def test_a_bag_whose_storage_file_is_no_regular_file_inside_it_is_refused_without_reading_it(tmp_path, capsys,
                                                                                               change):
     bag = tmp_path / 'bag'
@@ -305,10 +305,22 @@ def test_a_bag_whose_storage_file_is_no_regular_file_inside_it_is_refused_withou
         storage.unlink()
         os.mkfifo(storage)
         named = f'storage file {storage.name} is not a regular file'
-    else:
+    elif change == 'outside':
         (bag / 'metadata.yaml').write_text(metadata.replace(f'- {storage.name}', f'- ../{storage.name}'))
         named = f"relative_file_paths entry '../{storage.name}' is not a file inside the bag"
-    guard = threading.Timer(30.0, lambda: open(storage, 'wb').close() if change == 'fifo' else None)
+    elif change == 'in a subfolder':  # rosbags opens the name's last part, here a FIFO, whatever is in sub/
+        (bag / 'sub').mkdir()
+        storage.rename(bag / 'sub' / storage.name)
+        os.mkfifo(storage)
+        (bag / 'metadata.yaml').write_text(metadata.replace(f'- {storage.name}', f'- sub/{storage.name}'))
+        named = f"relative_file_paths entry 'sub/{storage.name}' is not a file inside the bag"
+    else:
+        storage.unlink()
+        os.mkfifo(bag / 'b')
+        (bag / 'metadata.yaml').write_text(metadata.replace(f'  - {storage.name}', '  b', 1).replace(
+            'relative_file_paths:\n  b', 'relative_file_paths: b'))
+        named = 'relative_file_paths is str, not a list of file names'
+    guard = threading.Timer(30.0, lambda: [open(fifo, 'wb').close() for fifo in bag.rglob('*') if fifo.is_fifo()])
     guard.start()
     try:
         for refused in (lambda: score_bag(bag), lambda: from_bag.motion_file_from_bag(bag)):

@@ -80,8 +80,7 @@ def parameter_document(path: str) -> dict:
     without anchors or aliases (a few hundred bytes of aliases expand to gigabytes)."""
     try:
         text = read_data_file(path)
-        problem = plain_yaml_problem(text, "and ROS 2's parameter parser refuses aliases ('Will not support "
-                                           "aliasing')")
+        problem = plain_yaml_problem(text, "which no parameter file needs (rcl's parser refuses aliases)")
         document = yaml.load(text, Loader=SAFE_LOADER) if problem is None else None
     except (OSError, DataFileError) as error:
         raise ParameterFileError(f'parameter file {path} cannot be read: {error}') from error
