@@ -361,8 +361,9 @@ def read_urdf(path: Path) -> UrdfDescription:
     if len(links) > MAX_URDF_LINKS:
         raise ModelError(f'URDF {path} has {len(links)} links, more than the {MAX_URDF_LINKS} ddarm reads (an arm '
                          f'has tens)')
-    if len(root.findall('joint')) >= MAX_URDF_LINKS:
-        raise ModelError(f'URDF {path} has {len(root.findall("joint"))} joints, more than a tree of at most '
+    joint_elements = root.findall('joint')
+    if len(joint_elements) >= MAX_URDF_LINKS:
+        raise ModelError(f'URDF {path} has {len(joint_elements)} joints, more than a tree of at most '
                          f'{MAX_URDF_LINKS} links has')
     inertias = {}
     for element in links:
@@ -373,7 +374,7 @@ def read_urdf(path: Path) -> UrdfDescription:
             raise ModelError(f'URDF {path}: link {name!r} is defined twice')
         inertias[name] = _inertia(path, name, element)
     joints = {}
-    for element in root.findall('joint'):
+    for element in joint_elements:
         joint = _joint(path, element, inertias)
         if joint.name in joints:
             raise ModelError(f'URDF {path}: joint {joint.name!r} is defined twice')
