@@ -446,6 +446,9 @@ class ControllerNode(Node):
             'reference_final': None if self.reference is None else self.reference.q[-1].tolist(),
             'sample': self.tick_sample if self.sampling == 'timer' else self.last_sample, 'ticks': self.ticks,
             'refused_messages': self.refused_messages, **self.counters,
+            # Matched on this node's side of each topic: a driver waits for them before sample 0 goes out.
+            'state_publishers': self.state_subscription.get_publisher_count(),
+            'command_subscribers': self.command_publisher.get_subscription_count(),
             'scheduling': self.scheduling.current().report(),
             'parameters': plain_parameters(proposed_values(self, ())), 'configuration': self.configuration})
         return response

@@ -1,5 +1,6 @@
 """The plant and controller nodes under faults of their own making or of a peer's: they keep answering, and say what."""
 
+import json
 import re
 import signal
 import socket
@@ -162,6 +163,34 @@ def test_a_second_command_for_a_sample_is_counted_and_diagnostics_name_the_plant
         executor.shutdown()
         listener.node.destroy_node()
         plant.destroy_node()
+
+
+def test_the_controller_status_counts_its_own_matched_side_of_the_state_and_command_topics(ros_context):
+    # The driver starts sample 0 only once these hold: a command sent before its writer matched the plant's reader
+    # is lost, and a lockstep plant then waits for it until its timeout.
+    controller = ControllerNode('computed_torque', context=ros_context, namespace='/arm', parameter_overrides=overrides(
+        {'kp': [225.0] * 3, 'kv': [30.0] * 3}))
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(controller)
+    peer = rclpy.create_node('peer', namespace='/arm', context=ros_context)
+    executor.add_node(peer)
+    client = peer.create_client(Trigger, '/arm/computed_torque/status')
+
+    def status():
+        future = client.call_async(Trigger.Request())
+        spin_until(executor, future.done)
+        return json.loads(future.result().message)
+    try:
+        spin_until(executor, client.service_is_ready)
+        assert (status()['state_publishers'], status()['command_subscribers']) == (0, 0)
+        peer.create_publisher(JointState, 'joint_states', SAMPLE_QOS)
+        peer.create_subscription(JointState, 'effort_command', lambda msg: None, SAMPLE_QOS)
+        peer.create_subscription(JointState, 'effort_command', lambda msg: None, SAMPLE_QOS)
+        spin_until(executor, lambda: (status()['state_publishers'], status()['command_subscribers']) == (1, 2))
+    finally:
+        executor.shutdown()
+        peer.destroy_node()
+        controller.destroy_node()
 
 
 @pytest.mark.parametrize('node_name, make, kind', [

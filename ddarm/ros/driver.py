@@ -65,6 +65,8 @@ WATCH_PERIOD = 0.01
 # Messages recorded before the driver writes them to the bag: a write of this many takes a few ms, far less than the
 # samples that the topics' QoS depth keeps while the driver is busy with it.
 UNWRITTEN_LIMIT = 256
+# Who reads the controller's commands in an episode: the plant and this driver's recorder.
+COMMAND_SUBSCRIBERS = 2
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 # The topics of every sample, heard from sample 0 on.
@@ -559,11 +561,23 @@ class GraphDriver(Node):
             self.reference_publisher.publish(reference)
             expected = {'ready': True, 'kp': list(spec.kp), 'kv': list(spec.kv), 'delay': spec.delay,
                         'reference_samples': plan.k_max + 1, 'reference_final': plan.q_ref[-1].tolist()}
-            while True:  # until the controller holds this episode's reference and gains
+            # Until the controller holds this episode's reference and gains, and its own side of the state and
+            # command topics has matched the plant and this recorder: a command its writer sends before matching
+            # the plant's reader is lost, and the lockstep plant would wait for it forever.
+            while True:
                 state = json.loads(self._trigger(executor, self.reset_clients[spec.controller], deadline,
                                                  watching).message)
-                if all(state[key] == value for key, value in expected.items()):
+                configured = all(state[key] == value for key, value in expected.items())
+                matched = state['state_publishers'] >= 1 and state['command_subscribers'] >= COMMAND_SUBSCRIBERS
+                if configured and matched:
                     break
+                if time.monotonic() > deadline:
+                    controller = self.node_name(spec.controller)
+                    raise GraphEpisodeError(
+                        f'{controller} does not hold the episode\'s reference and gains' if not configured else
+                        f'{controller} matched {state["state_publishers"]} joint_states publisher(s) (1 needed) and '
+                        f'{state["command_subscribers"]} command subscriber(s) ({COMMAND_SUBSCRIBERS} needed: the plant '
+                        'and the recorder) before the timeout')
                 spin_once(executor, 0.01)
             configuration = state['configuration']
             self._check_started_with(spec.controller, controller_parameters, state['parameters'])
