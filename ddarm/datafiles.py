@@ -60,14 +60,19 @@ def read_data_bytes(path: Path | str, limit: int = MAX_FILE_BYTES) -> bytes:
     return data
 
 
-def plain_yaml_problem(text: str, reader: str) -> str | None:
-    """What makes `text` more than plain YAML data (an anchor or alias, more than MAX_DEPTH levels), said as
-    `reader` ('which rosbag2 never writes') has it; None for plain data. yaml.YAMLError for YAML that is not."""
-    depth = 0
+def plain_yaml_problem(text: str, reader: str, max_values: int | None = None) -> str | None:
+    """What makes `text` more than plain YAML data (an anchor or alias, more than MAX_DEPTH levels, more than
+    `max_values` scalars), said as `reader` ('which rosbag2 never writes') has it; None for plain data.
+    yaml.YAMLError for YAML that is not."""
+    depth = values = 0
     for event in yaml.parse(text, Loader=SAFE_LOADER):
         if isinstance(event, yaml.AliasEvent) or getattr(event, 'anchor', None) is not None:
             return f'holds a YAML anchor or alias, {reader}'
-        if isinstance(event, yaml.CollectionStartEvent):
+        if isinstance(event, yaml.ScalarEvent):
+            values += 1
+            if max_values is not None and values > max_values:
+                return f'holds more than {max_values} values (keys and items), {reader}'
+        elif isinstance(event, yaml.CollectionStartEvent):
             depth += 1
             if depth > MAX_DEPTH:
                 return f'nests more than {MAX_DEPTH} levels deep, {reader}'
@@ -94,9 +99,17 @@ def bag_metadata_text(bag: Path | str) -> str:
 
 
 def _check_storage_files(bag: Path, metadata) -> None:
-    """Refuse storage files named in the metadata that lie outside the bag's folder or are not regular files:
-    reading a FIFO would wait for a writer for ever, a device would never end."""
+    """Refuse a compressed bag, and storage files named in the metadata that lie outside the bag's folder or are
+    not regular files: reading a FIFO would wait for a writer for ever, a device would never end."""
     information = metadata.get('rosbag2_bagfile_information') if isinstance(metadata, dict) else None
+    compression = information.get('compression_mode') if isinstance(information, dict) else None
+    if compression:
+        # rosbags inflates a file-compressed bag whole into the temporary folder before reading it, and a message
+        # of a message-compressed one whole in memory: neither size is known before, so a small file can fill both.
+        raise DataFileError(f'{bag}: metadata.yaml: compression_mode {compression!r} ('
+                            f'{information.get("compression_format") or "no format"}): compressed bags are not read, '
+                            'since their inflated size is unbounded until inflated; decompress it first (ros2 bag '
+                            'convert, or rosbags-convert) and pass the copy')
     names = information.get('relative_file_paths') if isinstance(information, dict) else None
     if names is not None and not isinstance(names, list):
         raise DataFileError(f'{bag}: metadata.yaml: relative_file_paths is {type(names).__name__}, not a list of '

@@ -3,13 +3,16 @@ beyond it with a one-line error naming the file and the field, and no refusal wr
 
 import importlib.util
 import os
+import re
 import socket
+import tempfile
 import threading
 import tracemalloc
 
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
+from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
 from ddarm.cli.main import main
@@ -207,6 +210,30 @@ def test_a_bag_whose_metadata_holds_aliases_is_refused_by_score_and_motion(tmp_p
     assert 'anchor or alias' in capsys.readouterr().err
 
 
+@pytest.mark.parametrize('mode', [CompressionMode.FILE, CompressionMode.MESSAGE], ids=['file', 'message'])
+def test_a_compressed_bag_is_refused_before_rosbags_inflates_it(tmp_path, capsys, mode, monkeypatch):
+    # rosbags inflates a file-compressed bag whole into the temporary folder: a few MB of zeros became 2 GiB there.
+    bag = tmp_path / 'bag'
+    writer = Writer(bag, version=9)
+    writer.set_compression(mode, CompressionFormat.ZSTD)
+    with writer:
+        connection = writer.add_connection('/joint_states', JOINT_STATE, typestore=TYPESTORE)
+        for k in range(3):
+            writer.write(connection, 1_000_000 * (k + 1),
+                         TYPESTORE.serialize_cdr(joint_state(k, ['j1'], [0.1 * k]), JOINT_STATE))
+    temporary = tmp_path / 'tmp'
+    temporary.mkdir()
+    monkeypatch.setenv('TMPDIR', str(temporary))
+    monkeypatch.setattr(tempfile, 'tempdir', None)  # tempfile reads TMPDIR once, then caches the folder
+    named = f"{bag}: metadata.yaml: compression_mode '{mode.name.lower()}' (zstd): compressed bags are not read"
+    for refused in (lambda: score_bag(bag), lambda: from_bag.motion_file_from_bag(bag)):
+        with pytest.raises((BagError, MotionError), match=re.escape(named)):
+            refused()
+    assert main(['motion', str(bag), '--out', str(tmp_path / 'motion.yaml')]) == 2
+    assert named in capsys.readouterr().err
+    assert list(temporary.iterdir()) == [] and not (tmp_path / 'motion.yaml').exists()
+
+
 def test_a_topic_of_more_messages_than_the_bound_is_refused_as_they_are_counted(tmp_path, monkeypatch):
     bag = write_bag(tmp_path / 'bag', '/joint_states', JOINT_STATE,
                     [joint_state(k, ['a'], [0.1 * k]) for k in range(5)])
@@ -349,6 +376,24 @@ def test_a_parameter_file_larger_than_its_bound_is_refused_unread(tmp_path):
         file.truncate(MAX_FILE_BYTES + 1)
     with pytest.raises(ParameterFileError, match=f'holds {MAX_FILE_BYTES + 1} bytes'):
         parameter_document(str(path))
+
+
+def test_a_parameter_file_of_more_values_than_its_bound_is_refused_before_a_node_takes_them(tmp_path, capsys):
+    # 3,000,000 items (12 MB, within the byte bound) kept `ddarm controller` starting for over 11 minutes.
+    from ddarm.ros.parameter_files import MAX_PARAMETER_VALUES, parameter_document
+
+    def parameter_file(name: str, items: int):
+        path = tmp_path / name
+        path.write_text('computed_torque:\n  ros__parameters:\n    kp: [' + ', '.join(['1.0'] * items) + ']\n')
+        return path
+    # Three keys (the node, ros__parameters, kp) and the items are its values.
+    assert len(parameter_document(str(parameter_file('most.yaml', MAX_PARAMETER_VALUES - 3)))['computed_torque'][
+        'ros__parameters']['kp']) == MAX_PARAMETER_VALUES - 3
+    path = parameter_file('more.yaml', MAX_PARAMETER_VALUES - 2)
+    assert main(['controller', 'computed_torque', '--ros-args', '--params-file', str(path)]) == 2
+    printed = capsys.readouterr()  # a node's refusal is on stdout, beside its log
+    assert f'{path} holds more than {MAX_PARAMETER_VALUES} values' in printed.out, printed
+    assert 'Traceback' not in printed.out + printed.err
 
 
 @pytest.mark.parametrize('episode, named', [

@@ -207,7 +207,13 @@ def test_a_run_summary_never_holds_a_number_json_cannot(tmp_path):
     assert summary['best'] == {'I': 0.25} and summary['status'] == 'complete'
 
 
-@pytest.mark.parametrize('value', ['-1e-3', '-1E+2', '-.5e1', '-inf'])
+def test_a_negative_number_float_cannot_read_is_refused_by_its_argument_not_taken_for_an_option(capsys):
+    err = refused_by_the_parser(capsys, ['episode', '--controller', 'pd_gravity', '--omega', '10', '--duration',
+                                         '-0x1p3'], '--duration')
+    assert "'-0x1p3'" in err and 'expected one' not in err
+
+
+@pytest.mark.parametrize('value', ['-1e-3', '-1E+2', '-.5e1', '-inf', '-1_0'])
 def test_a_negative_number_in_exponent_form_is_a_value_not_an_option(capsys, value):
     # argparse took -1e-3 for an option: 'expected one argument', not the quantity's own refusal.
     err = refused_by_the_parser(capsys, ['episode', '--controller', 'pd_gravity', '--omega', '10', '--tau', value],

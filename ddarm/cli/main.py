@@ -32,13 +32,14 @@ from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 
 
-# A negative decimal number as float() reads it (no ddarm option looks like one).
-_NEGATIVE_NUMBER = re.compile(r'^-(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|inf|infinity|nan)$', re.IGNORECASE)
+# What a user means as a negative number: a minus before a digit (no ddarm option starts so), -inf or -nan. The
+# argument's own type then reads it or refuses it by name (`-1_0` is -10 to float(), `-0x1p3` no number).
+_NEGATIVE_NUMBER = re.compile(r'^-(?:\.?\d|inf$|infinity$|nan$)', re.IGNORECASE)
 
 
 class _OneLineParser(argparse.ArgumentParser):
     """argparse's parser whose refusal is one line, as every other refusal of ddarm's (its usage is in --help),
-    and which takes `-1e-3` and `-inf` as the negative numbers they are: Python 3.11's argparse reads only -1 and
+    and which takes `-1e-3`, `-1_0` and `-inf` as the negative numbers they are: Python 3.11's argparse reads only -1 and
     -0.5 so, and any other as an option (the private attribute is argparse's one hook for it)."""
 
     def __init__(self, *arguments, **options) -> None:

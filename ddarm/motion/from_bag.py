@@ -58,6 +58,12 @@ def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequ
             not finite, or a motion the file cannot hold.
     """
     bag = Path(bag)
+    for name, bound in (('start', start), ('end', end)):
+        if bound is not None and not (math.isfinite(bound) and bound >= 0):
+            raise MotionError(f'{bag}: the window {name} must be a finite number of seconds >= 0 after the topic\'s '
+                              f'first message, got {bound!r}')
+    if start is not None and end is not None and not start <= end:
+        raise MotionError(f'{bag}: the window start {start!r} s is after its end {end!r} s')
     if not (bag / 'metadata.yaml').is_file():
         raise MotionError(f'{bag}: no metadata.yaml in it: not a rosbag2 bag, or a recording that never closed')
     try:
@@ -171,11 +177,6 @@ def _from_joint_states(where: str, bag: Path, topic: str, messages: list, joints
             raise MotionError(f'{where}: message {i} is stamped {_seconds(stamps[i])!r} s, not after message '
                               f'{i - 1} ({_seconds(stamps[i - 1])!r} s): the header stamps must increase (the '
                               'times of a point are its stamp, never the time the bag received it)')
-    for name, bound in (('start', start), ('end', end)):
-        if bound is not None and not math.isfinite(bound):
-            raise MotionError(f'{where}: the window {name} must be a finite number of seconds, got {bound!r}')
-    if start is not None and end is not None and not start <= end:
-        raise MotionError(f'{where}: the window start {start!r} s is after its end {end!r} s')
     after_first = [(stamp - stamps[0]) / _NANOSEC_PER_SEC for stamp in stamps]
     used = [i for i, t in enumerate(after_first)
             if (start is None or start <= t) and (end is None or t <= end)]

@@ -27,6 +27,9 @@ from ddarm.errors import DdarmError
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
 PARAM_FLAGS = ('-p', '--param')
 PARAMETERS_KEY = 'ros__parameters'
+# Keys and items of one parameter file: a node of a thousand joints declares tens of thousands. Each value costs rcl
+# and rclpy ~70 µs to hand to the node, so 3,000,000 (12 MB, within the file bound) kept a node starting for minutes.
+MAX_PARAMETER_VALUES = 100_000
 # rcl flags that take the next argument as their value (which is then not a flag of its own).
 _FLAGS_WITH_VALUE = {'-r', '--remap', '-p', '--param', PARAMS_FILE, '-e', '--enclave', '--log-level',
                      '--log-config-file', '--log-file-name'}
@@ -76,11 +79,12 @@ def _node_parameters(mapping: dict, namespace: str = '') -> list[tuple[str, obje
 
 
 def parameter_document(path: str) -> dict:
-    """The file's YAML, read within the bounds of ddarm.datafiles and, as rcl's parameter parser reads it,
-    without anchors or aliases (a few hundred bytes of aliases expand to gigabytes)."""
+    """The file's YAML, read within the bounds of ddarm.datafiles and MAX_PARAMETER_VALUES and, as rcl's parameter
+    parser reads it, without anchors or aliases (a few hundred bytes of aliases expand to gigabytes)."""
     try:
         text = read_data_file(path)
-        problem = plain_yaml_problem(text, "which no parameter file needs (rcl's parser refuses aliases)")
+        problem = plain_yaml_problem(text, 'which no parameter file needs',
+                                     MAX_PARAMETER_VALUES)
         document = yaml.load(text, Loader=SAFE_LOADER) if problem is None else None
     except (OSError, DataFileError) as error:
         raise ParameterFileError(f'parameter file {path} cannot be read: {error}') from error
