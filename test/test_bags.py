@@ -602,3 +602,65 @@ def test_ddarm_score_names_each_bad_bag_and_scores_the_others(tmp_path, capsys):
     assert errors[0].startswith(f'ddarm score: {bad_spec}: /ddarm/episode holds a spec that cannot be run')
     assert errors[1].startswith(f'ddarm score: {bad_reference}: /reference: reference point 1: effort is not finite')
     assert errors[2].startswith(f'ddarm score: {bad_stamp}: /joint_states: stamp')
+
+
+def _beyond(field: int, value: float):
+    def change(n, t, state):
+        if n != 2:
+            return t, state
+        changed = [list(part) for part in state]
+        changed[field][1] = value
+        return t, tuple(changed)
+    return change
+
+
+@pytest.mark.parametrize('field, value', [(0, 150.0), (0, -1e300), (1, 2000.0), (1, -1000.5)])
+def test_a_state_beyond_the_plants_bounds_is_scored_as_a_divergence_there(tmp_path, field, value):
+    scored = score_bag(synthetic_bag(tmp_path / 'bag', change_state=_beyond(field, value)))
+    assert scored['diverged'] and scored['diverged_at_sample'] == 2 and scored['samples_scored'] == 2
+    assert scored['I1'] == pytest.approx(2 * 3 * np.degrees(0.01) / 3)
+
+
+def test_a_state_on_the_plants_bounds_is_not_a_divergence(tmp_path):
+    scored = score_bag(synthetic_bag(tmp_path / 'bag', change_state=_beyond(1, -1000.0)))
+    assert not scored['diverged'] and scored['samples_scored'] == 4
+
+
+def test_an_initial_state_beyond_the_plants_bounds_is_refused(tmp_path):
+    def change(n, t, state):
+        return t, ([0.0, 0.0, 101.0], *state[1:]) if n == 0 else state
+    bag = synthetic_bag(tmp_path / 'bag', change_state=change)
+    with pytest.raises(BagError, match=f"^{re.escape(str(bag))}: the state of sample 0 is beyond the plant's bounds"):
+        score_bag(bag)
+
+
+@pytest.mark.parametrize('topic', ['/joint_states', '/effort_command'])
+def test_messages_whose_header_stamps_run_backwards_are_refused(good_bag, tmp_path, capsys, topic):
+    period = SPECS['computed_torque'].period
+
+    def swap_5_and_6(recorded, message):
+        if recorded == topic:
+            sample = round((message.header.stamp.sec + message.header.stamp.nanosec * 1e-9) / period)
+            if sample in (5, 6):
+                message.header.stamp = _stamp((11 - sample) * period)
+        return message
+
+    bag = copy_bag(good_bag, tmp_path / 'bag', transform=swap_5_and_6)
+    assert main(['score', str(bag)]) == 2
+    assert capsys.readouterr().err == (f'ddarm score: {bag}: {topic} message 6 is stamped for sample 5, after '
+                                       'message 5 for sample 6: the header stamps must increase in the order '
+                                       'recorded\n')
+
+
+@pytest.mark.parametrize('prismatic', [5, [True], 'yes', [1, 0, 0], [None, False, False], {'joint1': True}])
+def test_a_prismatic_field_that_is_not_one_flag_per_joint_is_refused_naming_it(tmp_path, capsys, prismatic):
+    bag = synthetic_bag(tmp_path / 'bag', episode={**_spec_with(), 'prismatic': prismatic})
+    assert main(['score', str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'ddarm score: {bag}: /ddarm/episode holds prismatic ') and 'Traceback' not in err
+    assert 'not one true or false per joint (3)' in err
+
+
+def test_a_prismatic_field_of_one_flag_per_joint_is_taken(tmp_path):
+    scored = score_bag(synthetic_bag(tmp_path / 'bag', episode={**_spec_with(), 'prismatic': [True, False, False]}))
+    assert scored['max_abs_error_deg'][0] is None and scored['max_abs_error_deg'][1] == pytest.approx(np.degrees(0.01))

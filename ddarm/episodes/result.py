@@ -11,6 +11,7 @@ import numpy as np
 from ddarm.episodes.indices import score_series
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.errors import DdarmError
+from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_MAX_VELOCITY, beyond_bounds
 
 # How many sample numbers a refusal lists, per kind of missing evidence.
 LISTED_SAMPLES = 10
@@ -95,7 +96,8 @@ class Episodes:
 
         states[n] = (q, v, effort): the state at t_n, and the torque the actuators applied over
         [t_{n-1}, t_n) (None at n = 0); a state at n > 0 without a position (q None) says the plant
-        diverged during the period before t_n. commands[n]: what the law asked for at sample n.
+        diverged during the period before t_n, and so does one beyond the plant's bounds (`beyond_bounds`), which
+        a plant that is not ddarm's may publish without that mark. commands[n]: what the law asked for at sample n.
         States past sample k_max + 1 are not part of the episode.
 
         The scored samples are j = 0 … k_max, or 0 … j - 1 for a plant that diverged at j
@@ -105,7 +107,11 @@ class Episodes:
         RecordingError names the samples missing: a state with position and velocity for each
         scored sample, the next state's effort for each, and a command for each.
         """
-        diverged_at = next((n for n in sorted(states) if 0 < n <= plan.k_max + 1 and states[n][0] is None), None)
+        if 0 in states and beyond_bounds(*states[0][:2]):
+            raise RecordingError(f"the state of sample 0 is beyond the plant's bounds ({DEFAULT_MAX_POSITION:g} rad or "
+                                 f'm, {DEFAULT_MAX_VELOCITY:g} rad/s or m/s): no episode starts there', [0])
+        diverged_at = next((n for n in sorted(states) if 0 < n <= plan.k_max + 1
+                            and (states[n][0] is None or beyond_bounds(*states[n][:2]))), None)
         last = plan.k_max if diverged_at is None else diverged_at - 1
         scored = range(last + 1)
 

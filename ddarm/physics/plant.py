@@ -80,8 +80,6 @@ class PlantOptions:
             external_torque=_optional('external_torque', self.external_torque, dof),
             max_position=self.max_position, max_velocity=self.max_velocity)
 
-
-
     def compiled(self, dof: int) -> tuple:
         """The options as the compiled step reads them: zeros for no friction or external torque."""
         zero = np.zeros(dof)
@@ -89,6 +87,14 @@ class PlantOptions:
                 zero if self.viscous_friction is None else np.ascontiguousarray(self.viscous_friction, dtype=float),
                 zero if self.coulomb_friction is None else np.ascontiguousarray(self.coulomb_friction, dtype=float),
                 float(self.period), int(self.substeps), float(self.max_position), float(self.max_velocity))
+
+
+def beyond_bounds(q=None, v=None, max_position: float = DEFAULT_MAX_POSITION,
+                  max_velocity: float = DEFAULT_MAX_VELOCITY) -> bool:
+    """Whether a state (q, q̇; either may be None, unknown) has left the bounds within which `advance` keeps the
+    plant: the divergence rule applied to states no ddarm plant checked, such as a recording's."""
+    return bool((q is not None and not np.all(np.abs(q) <= max_position))
+                or (v is not None and not np.all(np.abs(v) <= max_velocity)))
 
 
 # The compiled functions keep episodes on the last axis ("lanes"): see ddarm.physics.dynamics.

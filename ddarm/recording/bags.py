@@ -398,6 +398,11 @@ def _by_sample(path: Path, topic: str, messages: list, period: float) -> dict:
     if repeated:
         raise BagError(f'{path}: {topic} holds more than one message for samples {repeated[:10]}: '
                        'a second publisher, or messages recorded twice')
+    # One reliable publisher's messages arrive in the order it sent them, so they are recorded in that order.
+    for i in range(1, len(samples)):
+        if samples[i] < samples[i - 1]:
+            raise BagError(f'{path}: {topic} message {i} is stamped for sample {samples[i]}, after message {i - 1} '
+                           f'for sample {samples[i - 1]}: the header stamps must increase in the order recorded')
     return dict(zip(samples, messages))
 
 
@@ -518,6 +523,11 @@ def _episode_configuration(path: Path, text: str) -> tuple[dict, float, list[str
     joints = episode.get('joints')
     if not (isinstance(joints, list) and joints and all(isinstance(name, str) for name in joints)):
         raise refused('holds no joints (a list of joint names under "joints")')
+    prismatic = episode.get('prismatic', [False] * len(joints))
+    if not (isinstance(prismatic, list) and len(prismatic) == len(joints)
+            and all(isinstance(flag, bool) for flag in prismatic)):
+        raise refused(f'holds prismatic {shown(prismatic)}, not one true or false per joint '
+                      f'({len(joints)})')
     return episode, float(period), joints
 
 
@@ -546,7 +556,7 @@ def bag_result(bag: BagEpisode) -> Episodes:
         limit = per_joint(f'{path}: {EPISODE_TOPIC} torque_limit', limit, len(bag.joints), BagError, positive=True)
     plan = EpisodePlan(bag.reference_times, bag.q_ref, bag.v_ref, bag.a_ref, bag.nominal, limit,
                        *(bag.states[0][:2] if 0 in bag.states else (None, None)), joint_names=tuple(bag.joints),
-                       prismatic=tuple(bool(x) for x in bag.episode.get('prismatic', [False] * len(bag.joints))))
+                       prismatic=tuple(bag.episode.get('prismatic', [False] * len(bag.joints))))
     try:
         return Episodes.from_recorded(spec, plan, bag.states, bag.commands)
     except (RecordingError, IndicesError) as error:
