@@ -219,3 +219,16 @@ def test_a_negative_number_in_exponent_form_is_a_value_not_an_option(capsys, val
     err = refused_by_the_parser(capsys, ['episode', '--controller', 'pd_gravity', '--omega', '10', '--tau', value],
                                 '--tau')
     assert ('not a finite number' if value == '-inf' else 'tau must be') in err and 'expected one' not in err
+
+
+@pytest.mark.parametrize('arguments', [
+    ['--kp', '1e308', '1', '1', '--kv', '10', '10', '10'],
+    ['--omega', '10', '--viscous-friction', '1e150', '0', '0'],
+])
+def test_gains_or_friction_beyond_floating_point_run_and_say_the_stability_was_not_checked(capsys, arguments):
+    assert main(['episode', '--controller', 'computed_torque', *arguments, '--json']) == 0
+    captured = capsys.readouterr()
+    result = strict_json(captured.out)
+    assert result['diverged'] and 'Traceback' not in captured.err and 'RuntimeWarning' not in captured.err
+    assert ('the stability of the gains was not checked: the linearised loop is not finite: its gains, friction or '
+            'arm are too large for floating point') in result['warnings']

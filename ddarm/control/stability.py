@@ -174,6 +174,9 @@ def sampled_loop_transition(mass_matrix: np.ndarray, stiffness: np.ndarray, damp
     step = expm(generator * period)
     hold, response = step[:2 * n, :2 * n], step[:2 * n, 2 * n:]
     feedback = np.hstack([position_feedback, velocity_feedback])
+    if not (np.isfinite(step).all() and np.isfinite(feedback).all()):
+        raise StabilityError('the linearised loop is not finite: its gains, friction or arm are too large for '
+                             'floating point')
     if delay == 0:
         return hold - response @ feedback
     size = n * (delay + 2)
@@ -189,7 +192,10 @@ def growing_modes(transition: np.ndarray, joints: int) -> tuple[float, np.ndarra
     """(spectral radius, share): the largest |z| of `transition` (sampled_loop_transition's), and per joint the
     largest |x_i| / max_j |x_j| over the eigenvectors whose |z| exceeds 1 (all 0 when none does): which joints the
     growing modes move."""
-    values, vectors = np.linalg.eig(transition)
+    try:
+        values, vectors = np.linalg.eig(transition)
+    except np.linalg.LinAlgError as error:
+        raise StabilityError(f'the modes of the linearised loop were not found ({error})') from error
     magnitudes = np.abs(values)
     share = np.zeros(joints)
     for k in np.flatnonzero(magnitudes > GROWING):

@@ -398,11 +398,14 @@ def loop_stability_warnings(spec: EpisodeSpec, subject: str = 'the gains') -> li
     growing, share = [], np.zeros(plant.dof)
     for label, q in (('start q_0', motion.q0), ('goal q_f', motion.qf)):
         try:
+            # Gains beyond floating point overflow here; sampled_loop_transition refuses the loop they make.
+            with np.errstate(over='ignore', invalid='ignore'):
+                feedback = loop_feedback(spec, model, q)
             transition = sampled_loop_transition(plant.mass_matrix(q), gravity_stiffness(plant, q), damping,
-                                                 *loop_feedback(spec, model, q), spec.period, spec.delay)
+                                                 *feedback, spec.period, spec.delay)
+            radius, joints = growing_modes(transition, plant.dof)
         except StabilityError as error:
             return [f'the stability of {subject} was not checked: {error}']
-        radius, joints = growing_modes(transition, plant.dof)
         if joints.any():
             growing.append(f'{radius:.6g} at the {label}')
             share = np.maximum(share, joints)
