@@ -50,7 +50,7 @@ from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOP
                                      unknown_parameters_reason)
 from ddarm.realtime import SchedulingError
 from ddarm.ros.cdr import JointStateEncoder, decode_joint_state
-from ddarm.ros.executable import run_node
+from ddarm.ros.executable import REFUSED, non_utf8_argument, run_node
 from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
 from ddarm.samples import MAX_REFERENCE_POINTS, MessageError
 
@@ -657,6 +657,9 @@ class ControllerNode(Node):
 def main(args=None, law: str | None = None) -> int:
     args = sys.argv if args is None else args
     if law is None:
+        if (problem := non_utf8_argument(args)) is not None:  # rclpy cannot read the law's name among them
+            print(f'controller: refused to start: {problem}', flush=True)
+            return REFUSED
         non_ros = rclpy.utilities.remove_ros_args(args)[1:]
         if len(non_ros) != 1 or non_ros[0] not in CONTROLLERS:
             print(f'usage: controller {{{",".join(CONTROLLERS)}}} [--ros-args ...]', file=sys.stderr)

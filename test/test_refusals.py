@@ -1,13 +1,17 @@
 """Fail fast and say what is wrong (issue: trust): refusals that come before any search, episode or bag,
 name the option, path or node, and exit 2 without a traceback."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from ddarm.cli.main import main
 from process_helpers import DDARM
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_omega_with_kv_is_refused(capsys):
@@ -150,3 +154,42 @@ def test_a_bad_jobs_count_is_refused_before_any_search(capsys, tmp_path, jobs, m
     err = capsys.readouterr().err
     assert '--jobs' in err and message in err and 'searching' not in err
     assert not (tmp_path / 'paper').exists()
+
+
+NOT_UTF8 = 'is not UTF-8 text, and ROS 2 (node parameters, parameter files, bags) takes only UTF-8'
+
+
+@pytest.mark.parametrize('command', [
+    ['tune', '--controller', 'pd_gravity', '--index', 'I', '--urdf', 'arm\udcff.urdf'],
+    ['episode', '--controller', 'computed_torque', '--omega', '15', '--ros', '--bag', 'bag\udcff'],
+    ['episode', '--controller', 'computed_torque', '--omega', '15', '--realtime', '--urdf', 'arm\udcff.urdf'],
+    ['controller', 'computed_torque', '--ros-args', '--params-file', 'gains\udcff.yaml'],
+])
+def test_a_non_utf8_argument_of_a_command_that_starts_ros_is_refused_first_naming_it(tmp_path, command):
+    # A file name with a byte that is not UTF-8, as a shell hands it over (Python keeps it as a lone surrogate).
+    (tmp_path / 'arm\udcff.urdf').write_bytes((ROOT / 'config' / 'ddarm.urdf').read_bytes())
+    done = subprocess.run([os.fsencode(DDARM), *map(os.fsencode, command), b'--runs', os.fsencode(tmp_path / 'runs')]
+                          if command[0] == 'tune' else [os.fsencode(DDARM), *map(os.fsencode, command)],
+                          cwd=tmp_path, capture_output=True, timeout=60)
+    err = done.stderr.decode('utf-8', 'backslashreplace')
+    assert done.returncode == 2 and 'Traceback' not in err, err
+    assert err.startswith(f'ddarm {command[0]}: the argument ') and NOT_UTF8 in err and '\\xff' in err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ['arm\udcff.urdf'], 'nothing made, nothing searched'
+
+
+@pytest.mark.parametrize('start', [[os.fsencode(ROOT / 'scripts' / 'computed_torque')],
+                                   [b'-m', b'ddarm_control.node', b'pd_gravity'],
+                                   [os.fsencode(ROOT / 'scripts' / 'plant')]])
+def test_a_node_started_with_a_non_utf8_argument_refuses_naming_it(start):
+    done = subprocess.run([os.fsencode(sys.executable), *start, b'--ros-args', b'-r', b'__node:=node\xff'],
+                          capture_output=True, timeout=60)
+    out = done.stdout.decode('utf-8', 'backslashreplace')
+    assert done.returncode == 2 and 'Traceback' not in out + done.stderr.decode(errors='replace'), out
+    assert 'refused to start: the argument __node:=node\\xff ' + NOT_UTF8 in out
+
+
+def test_an_in_process_episode_takes_a_non_utf8_file_name(tmp_path):
+    (tmp_path / 'arm\udcff.urdf').write_bytes((ROOT / 'config' / 'ddarm.urdf').read_bytes())
+    done = subprocess.run([os.fsencode(DDARM), b'episode', b'--controller', b'computed_torque', b'--omega', b'15',
+                           b'--urdf', b'arm\xff.urdf'], cwd=tmp_path, capture_output=True, timeout=60)
+    assert done.returncode == 0 and b'I1 (2.5)' in done.stdout, done.stderr

@@ -31,7 +31,7 @@ def add_campaign_parser(commands) -> None:
                             'authentication: use a cluster on 127.0.0.1 or a trusted network only')
     campaign.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     campaign.add_argument('--json', action='store_true', help='print the summary (summary.json) on stdout')
-    campaign.set_defaults(handler=command_campaign)
+    campaign.set_defaults(handler=command_campaign, starts_ros=True)
 
 
 def command_campaign(args: argparse.Namespace) -> int:

@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     add_robust_arguments(tune)
     add_output_arguments(tune)
-    tune.set_defaults(handler=command_tune)
+    tune.set_defaults(handler=command_tune, starts_ros=True)
     reproduce = commands.add_parser('reproduce', help="reproduce the paper's Tables 2-4 and section 2 through "
                                                      'the ROS graph, with a report')
     reproduce.add_argument('--out', default='runs/paper', help='output folder, new (runs/paper)')
@@ -115,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
                            help='searches run at once, each a process with its share of the cores, and graph '
                                 'sessions recording episodes at once; the results do not depend on it (default: '
                                 'the cores this process may use)')
-    reproduce.set_defaults(handler=command_reproduce)
+    reproduce.set_defaults(handler=command_reproduce, starts_ros=True)
     score = commands.add_parser('score', help='score recorded episodes from their bags alone')
     score.add_argument('bags', nargs='+', metavar='BAG', help='rosbag2 folders written by ddarm')
     score.add_argument('--json', action='store_true', help='one JSON object per bag, one per line')
@@ -136,6 +136,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def starts_ros(args: argparse.Namespace) -> bool:
+    """Whether the command starts ROS 2: a node, or a graph session (which `tune`, `reproduce` and `campaign`
+    record their episodes through)."""
+    return any(getattr(args, flag, False) for flag in ('starts_ros', 'takes_ros_arguments', 'ros', 'realtime'))
+
+
 def main(argv: list[str] | None = None) -> int:
     with terminal_streams():  # argparse's refusals quote the arguments, and every command prints names from files
         return _main(sys.argv[1:] if argv is None else argv)
@@ -147,6 +153,12 @@ def _main(argv: list[str]) -> int:
     if ros_arguments and not getattr(args, 'takes_ros_arguments', False):
         parser.error(f'unrecognized arguments: {" ".join(ros_arguments)}')
     args.ros_arguments, args.argv = ros_arguments, argv
+    if starts_ros(args):
+        from ddarm.ros.executable import non_utf8_argument
+
+        if (problem := non_utf8_argument(argv)) is not None:  # before any work, not when ROS starts after it
+            print(f'ddarm {args.command}: {problem}', file=sys.stderr)
+            return 2
     if getattr(args, 'takes_ros_arguments', False):
         return args.handler(args)  # a node: it handles SIGINT and SIGTERM as ROS nodes do
     try:

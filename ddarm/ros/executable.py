@@ -32,6 +32,24 @@ def context_arguments(context) -> list[str]:
     return list(sys.argv) if context is rclpy.get_default_context() else []
 
 
+def non_utf8_argument(arguments: Sequence[str]) -> str | None:
+    """Why ROS cannot take these arguments, if it cannot: the first that is not UTF-8 text, named.
+
+    Python keeps a file name's non-UTF-8 bytes as lone surrogates; rclpy.init, node parameters, parameter files
+    and rosbag2's metadata hold UTF-8 only, and fail on them with a UnicodeEncodeError, after any work before.
+    """
+    for argument in arguments:
+        try:
+            argument.encode('utf-8')
+        except UnicodeEncodeError:
+            shown = argument.encode('utf-8', 'surrogateescape').decode('utf-8', 'backslashreplace')
+            if len(shown) > 200:
+                shown = shown[:200] + '…'
+            return (f'the argument {shown} is not UTF-8 text, and ROS 2 (node parameters, parameter files, '
+                    'bags) takes only UTF-8: rename the file or folder')
+    return None
+
+
 def parameter_file_refusal(parameter_files: dict, name: str) -> ParameterFileError | None:
     """Why a node named `name` got none of its parameter files' values, if it did not."""
     import rclpy
@@ -75,6 +93,8 @@ def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequen
     except ParameterFileError as error:
         return refuse(error)
     arguments = list(sys.argv if args is None else args)
+    if (problem := non_utf8_argument(arguments)) is not None:
+        return refuse(problem)
     try:
         rclpy.init(args=arguments, signal_handler_options=signal_handler_options)
     except RuntimeError as error:  # rclpy's errors of rcl (unknown arguments, a file it cannot parse)

@@ -84,7 +84,7 @@ def measure_round_trips(count: int, timeout: float = 120.0, serialized: bool = F
     process = subprocess.Popen([sys.executable, '-m', 'ddarm.ros.round_trip', 'echo', namespace, str(serialized)],
                                env=child_environment(), start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(args=[], context=context)  # not sys.argv: ddarm's command line holds no ROS arguments
     node = rclpy.create_node('round_trip_ping', namespace=namespace, context=context)
     executor = node_executor(context)
     executor.add_node(node)

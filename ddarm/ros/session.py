@@ -59,7 +59,9 @@ class GraphSession:
         self.processes: dict[str, subprocess.Popen] = {}
         self.arms: dict[str, dict] = {}  # per node process: the read-only parameters it was started with
         self.context = rclpy.Context()
-        rclpy.init(context=self.context)  # a context of our own: rclpy installs no signal handler for it
+        # A context of our own (rclpy installs no signal handler for it), given no arguments: ddarm's command line
+        # holds none for ROS, and rclpy.init would read sys.argv, whose non-UTF-8 bytes it cannot encode.
+        rclpy.init(args=[], context=self.context)
         self.driver = GraphDriver(namespace=self.namespace, context=self.context)
         self.executor = node_executor(self.context)
         self.executor.add_node(self.driver)
