@@ -200,6 +200,19 @@ def test_the_table_has_a_row_per_delay(capsys):
     assert lines[3].split()[:3] == ['d', '=', '1'] and '0.426159 (42.62)' in lines[3]
 
 
+@pytest.mark.parametrize('arguments', [['--delay', '100', '--zeta', '1e-6', '1e6'],
+                                       ['--delay', '0', '100', '--zeta', '1e-6', '1', '--period', '1e-6']])
+def test_the_tables_columns_stay_apart_whatever_the_numbers_width(capsys, arguments):
+    assert main(['stability', *arguments]) == 0
+    rows = capsys.readouterr().out.splitlines()[1:]
+    zetas = arguments[arguments.index('--zeta') + 1:][:2]
+    assert [float(cell.split('=')[1]) for cell in rows[0].split('  ') if cell.strip()] == [float(z) for z in zetas]
+    for row in rows[1:]:
+        # The row's label, then one whitespace-separated number (and its ω in parentheses) per ζ.
+        cells = [cell for cell in row.split('  ') if cell.strip()]
+        assert len(cells) == 1 + len(zetas) and all(float(cell.split()[0]) > 0 for cell in cells[1:]), row
+
+
 @pytest.mark.parametrize('arguments, option', [
     (['--delay', '-1'], '--delay'), (['--delay', '1.5'], '--delay'), (['--zeta', '0'], '--zeta'),
     (['--zeta', 'nan'], '--zeta'), (['--zeta', '-1'], '--zeta'), (['--period', '0'], '--period'),

@@ -74,12 +74,17 @@ def command_stability(args: argparse.Namespace) -> int:
     if joint_names is not None:
         print(f"  linearised at the goal q_f: modes μ of M(q_f)⁻¹ diag(m_ii) ({', '.join(joint_names)}) = "
               f'{format_vector(modes)}')
-    width = 10 if args.period is None else 20
-    print('         ' + ''.join(f"{f'ζ = {zeta:g}':>{width}}" for zeta in args.zeta))
-    for row, delay in enumerate(args.delay):
-        cells = [f"{entry['omega_delta']:.6g}" + ('' if args.period is None else f" ({entry['omega']:.4g})")
-                 for entry in boundaries[row * len(args.zeta):(row + 1) * len(args.zeta)]]
-        print(f'  d = {delay:<4d}' + ''.join(f'{cell:>{width}}' for cell in cells))
+    header = [f'ζ = {zeta:g}' for zeta in args.zeta]
+    cells = [f"{entry['omega_delta']:.6g}" + ('' if args.period is None else f" ({entry['omega']:.4g})")
+             for entry in boundaries]
+    labels = [f'  d = {delay}' for delay in args.delay]
+    # Right-aligned columns with at least two spaces between them, whatever the widest number.
+    width = max(len(text) for text in header + cells) + 2
+    label_width = max(len(label) for label in labels)
+    print(' ' * label_width + ''.join(f'{text:>{width}}' for text in header))
+    for row, label in enumerate(labels):
+        print(f'{label:<{label_width}}'
+              + ''.join(f'{cell:>{width}}' for cell in cells[row * len(args.zeta):(row + 1) * len(args.zeta)]))
     return 0
 
 
