@@ -7,9 +7,18 @@ from __future__ import annotations
 
 import os
 import stat
+import struct
+import sys
 from pathlib import Path
 
 import yaml
+# What rosbags (pinned in setup.py) inflates MCAP chunks with, installed with it.
+from lz4.frame import LZ4FrameDecompressor
+
+if sys.version_info >= (3, 14):
+    from compression import zstd
+else:
+    from backports import zstd
 
 from ddarm.errors import DdarmError
 from ddarm.samples import MAX_SAMPLES
@@ -27,6 +36,14 @@ MAX_METADATA_BYTES = 2**20
 # Messages of one topic read from a bag, counted as they are read (the metadata's counts may lie): an episode's
 # samples, one message each, and at most MAX_SAMPLES periods.
 MAX_TOPIC_MESSAGES = MAX_SAMPLES + 1
+# What a bag's compressed MCAP chunks may inflate to, each and all together: rosbags inflates a chunk whole in
+# memory before it compares the size its header states. An episode of a three-joint arm takes 0.5 kB a sample in
+# a bag (all its topics), so 1 KiB for each of MAX_TOPIC_MESSAGES samples holds the longest episode's bag.
+MAX_INFLATED_BYTES = MAX_TOPIC_MESSAGES * 2**10
+# Top-level records of an MCAP storage file, each read to find the chunks: an episode's file has a few per chunk
+# of 1 MiB, or one per message where it is not chunked (a few topics of MAX_TOPIC_MESSAGES messages); millions of
+# tiny records would take minutes to walk, in this check and in rosbags.
+MAX_MCAP_RECORDS = 8 * MAX_TOPIC_MESSAGES
 
 
 class DataFileError(DdarmError, ValueError):
@@ -126,3 +143,113 @@ def _check_storage_files(bag: Path, metadata) -> None:
         if not stat.S_ISREG(status.st_mode):
             raise DataFileError(f'{bag}: storage file {name} is not a regular file (a FIFO, a socket or a '
                                 f'device)')
+        if information.get('storage_identifier') == 'mcap':  # sqlite3 storage compresses nothing of its own
+            _check_mcap_chunks(bag, name, status.st_size)
+
+
+# The MCAP format (https://mcap.dev/spec), read here by hand, seeking past the data: rosbags' reader inflates each
+# chunk it meets, and the mcap package is no dependency of ddarm's.
+_MCAP_MAGIC = b'\x89MCAP0\r\n'
+_RECORD = struct.Struct('<BQ')  # opcode, length of the record's content
+_CHUNK, _CHUNK_INDEX = 0x06, 0x08
+_SUMMARY_ENDS = (0x02, 0x0E)  # the footer, a summary offset: where rosbags stops reading chunk indexes
+_CHUNK_HEAD = struct.Struct('<QQQII')  # message start and end times, uncompressed_size, its CRC; compression's length
+_CHUNK_INDEX_HEAD = struct.Struct('<QQQQI')  # message times, chunk offset and length; message index offsets' length
+_U64 = struct.Struct('<Q')
+_FOOTER_BYTES = 37  # opcode, length, summary_start, summary_offset_start, CRC; the closing magic
+_PIECE = 2**20  # of compressed data read, and of inflated data counted, at a time
+
+
+def _check_mcap_chunks(bag: Path, name: str, size: int) -> None:
+    """Refuse an MCAP file whose zstd or lz4 chunks inflate to more than MAX_INFLATED_BYTES, each or together, by
+    the uncompressed_size their headers state or by what their data inflates to (rosbags inflates the data, and
+    compares the size stated only after), or whose chunk index names data that is no such chunk. Nothing
+    inflated is kept."""
+    where = f'{bag}: storage file {name}'
+    with open(bag / name, 'rb') as file:
+        if size < len(_MCAP_MAGIC) + _FOOTER_BYTES or file.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+            return  # rosbags refuses it, saying why
+        # rosbags walks the records from the start, inflating each chunk it meets, where the file has no index.
+        chunks, total = {}, 0
+        for offset, opcode in _mcap_records(file, len(_MCAP_MAGIC), size, where):
+            if opcode != _CHUNK:
+                continue
+            head = file.read(_CHUNK_HEAD.size)
+            if len(head) < _CHUNK_HEAD.size:
+                break  # a truncated record, where rosbags fails too
+            *_, declared, _, length = _CHUNK_HEAD.unpack(head)
+            compression = file.read(length) if length <= 4 else b''  # rosbags refuses any but '', zstd and lz4
+            if compression not in (b'zstd', b'lz4'):
+                continue  # an uncompressed chunk is no larger than its part of the file
+            total += declared
+            chunk = f'{where}: the {compression.decode()} chunk at byte {offset}'
+            if total > MAX_INFLATED_BYTES:
+                raise DataFileError(f'{chunk} inflates to {declared} bytes (its uncompressed_size), the chunks to '
+                                    f'{total} so far: more than the {MAX_INFLATED_BYTES} a bag may')
+            (compressed,) = _U64.unpack(file.read(8).ljust(8, b'\0'))
+            inflated = _inflated_size(file, compression, compressed, declared)
+            if inflated > declared:
+                raise DataFileError(f'{chunk} inflates to more than the {declared} bytes its uncompressed_size '
+                                    'states')
+            chunks[offset] = (compression, compressed)
+        # Where the summary indexes the chunks, rosbags inflates the data each index names.
+        file.seek(size - _FOOTER_BYTES + 9)
+        (summary,) = _U64.unpack(file.read(8).ljust(8, b'\0'))
+        indexed = set()
+        for _, opcode in _mcap_records(file, summary, size, where) if summary else ():
+            if opcode in _SUMMARY_ENDS:
+                break
+            head = file.read(_CHUNK_INDEX_HEAD.size) if opcode == _CHUNK_INDEX else b''
+            if len(head) < _CHUNK_INDEX_HEAD.size:
+                continue
+            *_, offset, _, skipped = _CHUNK_INDEX_HEAD.unpack(head)
+            file.seek(skipped + 8, os.SEEK_CUR)  # the message index offsets, and their length
+            (length,) = struct.unpack('<I', file.read(4).ljust(4, b'\0'))
+            compression = file.read(length) if length <= 4 else b''
+            if compression not in (b'zstd', b'lz4'):
+                continue
+            (compressed,) = _U64.unpack(file.read(8).ljust(8, b'\0'))
+            if chunks.get(offset) != (compression, compressed) or offset in indexed:
+                raise DataFileError(f'{where}: a chunk index names {compressed} bytes of {compression.decode()} '
+                                    f'data at byte {offset}, ' + ('a chunk indexed before' if offset in indexed
+                                                                  else 'where no such chunk is'))
+            indexed.add(offset)
+
+
+def _mcap_records(file, offset: int, size: int, where: str):
+    """(offset, opcode) of each record from `offset` on, the file at the record's content when one is yielded;
+    DataFileError beyond MAX_MCAP_RECORDS of them."""
+    for _ in range(MAX_MCAP_RECORDS):
+        file.seek(offset)
+        head = file.read(_RECORD.size)
+        if len(head) < _RECORD.size:
+            return
+        opcode, length = _RECORD.unpack(head)
+        yield offset, opcode
+        offset += _RECORD.size + length
+    raise DataFileError(f'{where} holds more than {MAX_MCAP_RECORDS} MCAP records, more than a bag of the longest '
+                        'episode')
+
+
+def _inflated_size(file, compression: bytes, compressed: int, limit: int) -> int:
+    """The bytes that the `compressed` bytes at the file's position inflate to as rosbags inflates them (zstd
+    frame after frame, lz4 its first frame only), counted to `limit` + 1 at most and not kept."""
+    decompressor = zstd.ZstdDecompressor() if compression == b'zstd' else LZ4FrameDecompressor()
+    inflated, data = 0, b''
+    try:
+        while inflated <= limit:
+            if decompressor.eof:
+                data += decompressor.unused_data
+                if compression == b'lz4' or not (data or compressed):
+                    break
+                decompressor = zstd.ZstdDecompressor()
+            elif decompressor.needs_input and not data:
+                data = file.read(min(_PIECE, compressed))
+                compressed -= len(data)
+                if not data:
+                    break  # the data ends before its frame: rosbags refuses it
+            inflated += len(decompressor.decompress(data, max_length=_PIECE))
+            data = b''
+    except (zstd.ZstdError, RuntimeError):  # lz4 says RuntimeError
+        pass  # damaged data, where rosbags' inflating stops too, refusing it
+    return inflated

@@ -5,16 +5,19 @@ import importlib.util
 import os
 import re
 import socket
+import struct
+import sys
 import tempfile
 import threading
 import tracemalloc
 
 import numpy as np
 import pytest
-from rosbags.rosbag2 import Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
 
+from ddarm import datafiles
 from ddarm.cli.main import main
 from ddarm.motion import files, from_bag
 from ddarm.motion.files import MAX_FILE_BYTES, MAX_JOINTS, MAX_NODES, MAX_POINTS, load_motion
@@ -25,6 +28,11 @@ from ddarm.recording import bags
 from ddarm.recording.bags import BagError, score_bag
 from ddarm.tuning import campaign
 from ddarm.tuning.campaign import MAX_JOBS, CampaignError, load_campaign
+
+if sys.version_info >= (3, 14):
+    from compression import zstd
+else:
+    from backports import zstd
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -232,6 +240,102 @@ def test_a_compressed_bag_is_refused_before_rosbags_inflates_it(tmp_path, capsys
     assert main(['motion', str(bag), '--out', str(tmp_path / 'motion.yaml')]) == 2
     assert named in capsys.readouterr().err
     assert list(temporary.iterdir()) == [] and not (tmp_path / 'motion.yaml').exists()
+
+
+def with_zstd_chunks(bag, chunks: list) -> list:
+    """Put into the bag's MCAP file, after its header record, a zstd chunk of `inflated` zero bytes whose header
+    states `declared`, for each (declared, inflated) of `chunks`, and leave its footer naming no summary: rosbags
+    then walks the records, inflating each chunk it meets. The chunks' offsets."""
+    (storage,) = bag.glob('*.mcap')
+    data = storage.read_bytes()
+    start = 8 + 9 + struct.unpack_from('<Q', data, 9)[0]  # the magic, the header record
+    offsets, records = [], b''
+    for declared, inflated in chunks:
+        compressor = zstd.ZstdCompressor()  # a MiB of zeros at a time: the test holds no inflated chunk either
+        compressed = b''.join(compressor.compress(bytes(2**20)) for _ in range(inflated // 2**20))
+        compressed += compressor.compress(bytes(inflated % 2**20)) + compressor.flush()
+        content = struct.pack('<QQQII', 0, 0, declared, 0, 4) + b'zstd' + struct.pack('<Q', len(compressed))
+        offsets.append(start + len(records))
+        records += struct.pack('<BQ', 0x06, len(content) + len(compressed)) + content + compressed
+    footer = len(data) - 37  # opcode, length, summary_start, ...
+    storage.write_bytes(data[:start] + records + data[start:footer + 9] + bytes(8) + data[footer + 17:])
+    return offsets
+
+
+@pytest.mark.parametrize('declared, refused', [
+    (6 * 2**30, 'inflates to 6442450944 bytes (its uncompressed_size), the chunks to 6442450944 so far: more than '
+                f'the {datafiles.MAX_INFLATED_BYTES} a bag may'),
+    (1000, 'inflates to more than the 1000 bytes its uncompressed_size states'),
+], ids=['stated', 'understated'])
+def test_an_mcap_chunk_that_inflates_beyond_the_bound_is_refused_before_rosbags_inflates_it(tmp_path, capsys,
+                                                                                          declared, refused):
+    # A 230 kB bag whose one zstd chunk inflated to 6 GiB grew ddarm score to 6.5 GB before a MemoryError; here
+    # 256 MiB (8 kB compressed), which rosbags inflates whole whatever the chunk's header states.
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:  # marked complete: score reads its storage
+        writer.close(complete=True)
+    (offset,) = with_zstd_chunks(bag, [(declared, 2**28)])
+    (storage,) = bag.glob('*.mcap')
+    named = f'{bag}: storage file {storage.name}: the zstd chunk at byte {offset} {refused}'
+    for call in (score_bag, from_bag.motion_file_from_bag):
+        assert refused_within_memory((BagError, MotionError), call, bag) == named
+    for command in (['score', str(bag)], ['motion', str(bag), '--out', str(tmp_path / 'motion.yaml')]):
+        assert main(command) == 2
+        printed = capsys.readouterr()
+        assert named in printed.err and 'Traceback' not in printed.err + printed.out
+
+
+def test_mcap_chunks_that_inflate_beyond_the_bound_together_are_refused(tmp_path, monkeypatch):
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:
+        writer.close(complete=True)
+    offsets = with_zstd_chunks(bag, [(2**20, 2**20)] * 3)
+    monkeypatch.setattr(datafiles, 'MAX_INFLATED_BYTES', 2**21 + 1)
+    with pytest.raises(BagError, match=f'chunk at byte {offsets[2]} inflates to {2**20} bytes .*, the chunks to '
+                                       f'{3 * 2**20} so far: more than the {2**21 + 1}'):
+        score_bag(bag)
+
+
+def test_an_mcap_file_of_more_records_than_the_bound_is_refused_before_they_are_walked(tmp_path, monkeypatch):
+    bag = tmp_path / 'bag'
+    with bags.EpisodeBagWriter(bag, {'test': True}) as writer:
+        writer.close(complete=True)
+    with_zstd_chunks(bag, [(10, 10)] * 5)
+    monkeypatch.setattr(datafiles, 'MAX_MCAP_RECORDS', 5)
+    (storage,) = bag.glob('*.mcap')
+    with pytest.raises(BagError, match=f'{bag}: storage file {storage.name} holds more than 5 MCAP records'):
+        score_bag(bag)
+
+
+def compressed_chunks_bag(path, count: int):
+    """A bag of `count` /joint_states messages in zstd chunks of rosbags' own (its metadata states no
+    compression), indexed in its summary."""
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        connection = writer.add_connection('/joint_states', JOINT_STATE, typestore=TYPESTORE)
+        for k in range(count):
+            writer.write(connection, 1_000_000 * (k + 1),
+                         TYPESTORE.serialize_cdr(joint_state(k, ['j1'], [0.1 * k]), JOINT_STATE))
+    return path
+
+
+def test_a_bag_of_zstd_chunks_is_read_and_one_whose_chunk_index_misnames_its_chunk_is_refused(tmp_path):
+    bag = compressed_chunks_bag(tmp_path / 'bag', 3)
+    assert 'joint_names: [j1]' in from_bag.motion_file_from_bag(bag)
+    (storage,) = bag.glob('*.mcap')
+    data = bytearray(storage.read_bytes())
+    offset = struct.unpack_from('<Q', data, len(data) - 37 + 9)[0]  # the footer's summary_start
+    while data[offset] != 0x08:  # to the chunk index
+        offset += 9 + struct.unpack_from('<Q', data, offset + 1)[0]
+    end = offset + 9 + struct.unpack_from('<Q', data, offset + 1)[0]
+    chunk, compressed = struct.unpack_from('<Q', data, offset + 9 + 16)[0], struct.unpack_from('<Q', data, end - 16)[0]
+    struct.pack_into('<Q', data, end - 16, compressed + 9)  # the chunk's data and the record after it
+    storage.write_bytes(data)
+    with pytest.raises(MotionError, match=re.escape(f'{bag}: storage file {storage.name}: a chunk index names '
+                                                    f'{compressed + 9} bytes of zstd data at byte {chunk}, where no '
+                                                    'such chunk is')):
+        from_bag.motion_file_from_bag(bag)
 
 
 def test_a_topic_of_more_messages_than_the_bound_is_refused_as_they_are_counted(tmp_path, monkeypatch):
