@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +19,7 @@ import pytest
 import yaml
 
 from ddarm.cli.main import main
-from ddarm.physics.arm import Arm, ModelError, _check_readers_agree, read_urdf, urdf_joints
+from ddarm.physics.arm import Arm, ModelError, _check_readers_agree, default_urdf_path, read_urdf, urdf_joints
 from test_arms import inertial, joint, robot
 
 LINK_ORIGINS = {'l1': '0 0 0.1', 'l2': '0.2 0 0', 'l3': '0.15 0 0'}
@@ -66,9 +67,9 @@ def episode(capfd, tmp_path, monkeypatch, urdf_text, *extra, motion=None) -> tup
     return code, out, err
 
 
-def assert_refused(capfd, tmp_path, monkeypatch, urdf_text, named, *extra) -> str:
+def assert_refused(capfd, tmp_path, monkeypatch, urdf_text, named, *extra, motion=None) -> str:
     """Exit 2, nothing on stdout, one line on stderr (none of urdfdom's) holding every text of `named`."""
-    code, out, err = episode(capfd, tmp_path, monkeypatch, urdf_text, *extra)
+    code, out, err = episode(capfd, tmp_path, monkeypatch, urdf_text, *extra, motion=motion)
     assert code == 2, (out, err)
     assert out == '' and 'Traceback' not in err, err
     assert len(err.strip().splitlines()) == 1, err
@@ -194,6 +195,57 @@ UNREADABLE_JOINTS = [
 @pytest.mark.parametrize('case, text, named', UNREADABLE_JOINTS, ids=[case[0] for case in UNREADABLE_JOINTS])
 def test_a_joint_urdfdom_cannot_read_is_refused_naming_the_joint(capfd, tmp_path, monkeypatch, case, text, named):
     assert_refused(capfd, tmp_path, monkeypatch, arm_urdf(j2=text), ["'j2'", *named])
+
+
+NOT_TREES = [
+    ('a cycle back to the root link', arm_urdf(extra=joint('j4', 'revolute', 'l3', 'base', '0.3 0 0', axis='0 1 0')),
+     ["joints 'j1' → 'j2' → 'j3' → 'j4' form a cycle through link 'base'"]),
+    ('a cycle among inner links', arm_urdf(j2=j2_with(parent='l3')),
+     ["joints 'j3' → 'j2' form a cycle through link 'l2'"]),
+    ('a joint back to an inner link', arm_urdf(extra=joint('j4', 'revolute', 'l3', 'l1', '0.3 0 0', axis='0 1 0')),
+     ["joints 'j2' → 'j3' → 'j4' form a cycle through link 'l1'"]),
+    ('a link with two parents', arm_urdf(extra=joint('j4', 'revolute', 'l1', 'l3', '0.3 0 0', axis='0 1 0')),
+     ["link 'l3' is the child of two joints ('j3', 'j4')"]),
+    ('two root links', arm_urdf().replace('</robot>', '<link name="stray"/></robot>'), ["links 'base' and 'stray'"]),
+]
+
+
+@pytest.mark.parametrize('case, text, named', NOT_TREES, ids=[case[0] for case in NOT_TREES])
+def test_joints_that_do_not_make_the_links_one_tree_are_refused_naming_the_link(capfd, tmp_path, monkeypatch, case,
+                                                                                text, named):
+    """urdfdom and Pinocchio walk a tree from its root: each of these gave a model of other joints than the file's, or
+    urdfdom's own lines on stderr and Pinocchio's "no body named …", or a segfault (below)."""
+    assert 'a URDF is' in assert_refused(capfd, tmp_path, monkeypatch, text, named)
+
+
+@pytest.mark.parametrize('command', [['episode', '--controller', 'computed_torque', '--omega', '15'],
+                                     ['stability', '--controller', 'pd_gravity']], ids=['episode', 'stability'])
+def test_a_cycle_the_motions_joints_run_through_is_refused_not_a_segfault(tmp_path, command):
+    """The paper's arm with a joint from link3 back to link1, every joint in the motion: Pinocchio's URDF builder
+    segfaulted (exit 139). Run in a child process, so that a crash fails this test, not the test session."""
+    back = joint('back', 'revolute', 'link3', 'link1', '1.0 0 0', axis='0 -1 0')
+    urdf = write(tmp_path, default_urdf_path().read_text().replace('</robot>', back + '</robot>'))
+    motion = tmp_path / 'motion.yaml'
+    motion.write_text(yaml.safe_dump({'joint_names': ['joint1', 'joint2', 'joint3', 'back'], 'duration': 0.3,
+                                      'profile': 'bang_bang', 'start': [0.0] * 4, 'goal': [0.3] * 4}))
+    arguments = [*command, '--urdf', str(urdf), '--motion', str(motion), '--json']
+    script = f'import sys\nfrom ddarm.cli.main import main\nsys.exit(main({arguments!r}))\n'
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and done.stdout == '' and 'Traceback' not in done.stderr, done
+    assert "joints 'joint2' → 'joint3' → 'back' form a cycle through link 'link1'" in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_a_cycle_of_a_thousand_joints_is_refused_in_one_readable_line(tmp_path):
+    """A chain of 999 links (the most whose cycle stays within the 999 joints read) closed back to the root: found
+    without recursion, named without listing every joint."""
+    from ddarm.physics.arm import MAX_URDF_LINKS
+
+    links = MAX_URDF_LINKS - 1
+    closing = joint('back', 'fixed', f'c{links - 5}', 'base')
+    with pytest.raises(ModelError, match=f"joints 'j1' → 'j2' → 'j3' → … \\({links - 5} more\\) → 'f{links - 5}' → "
+                                         f"'back' form a cycle through link 'base'"):
+        read_urdf(write(tmp_path, fixed_chain(links).replace('</robot>', closing + '</robot>')))
 
 
 def test_a_revolute_limit_without_lower_and_upper_is_zero_as_urdfdom_reads_it(tmp_path):
@@ -372,9 +424,13 @@ def test_a_mass_scale_floating_point_cannot_hold_is_blamed_not_the_urdf(capfd, t
 
 
 FLOATING_POINT_URDFS = [
-    ('an inertia overflowing', l2_inertial(mass='1e308', xyz='1e10 0 0', ixx='1e308', iyy='1e308', izz='1e308'),
-     'too large'),
-    ('masses 300 orders of magnitude apart', l2_inertial(mass='1e305', ixx='1e304', iyy='1e304', izz='1e304'),
+    ('a mass of 1e300', l2_inertial(mass='1e300'), "<mass>: value='1e300' is too large for floating point"),
+    ('a moment of 1e300', l2_inertial(ixx='1e300', iyy='1e300', izz='1e300'),
+     "<inertia>: ixx='1e300' is too large for floating point"),
+    ('a product of inertia of -1e300', l2_inertial(ixy='-1e300'), "<inertia>: ixy='-1e300' is too large for floating"),
+    ('an inertia overflowing through its lever arm', l2_inertial(mass='1e100', xyz='1e110 0 0'),
+     'too large for floating point'),
+    ('masses 140 orders of magnitude apart', l2_inertial(mass='1e140', ixx='1e139', iyy='1e139', izz='1e139'),
      'far apart'),
     ('a mass Pinocchio cannot resolve', l2_inertial(mass='1e-300', ixx='1e-300', iyy='1e-300', izz='1e-300'),
      'Pinocchio resolves'),
@@ -387,6 +443,31 @@ def test_masses_floating_point_cannot_hold_are_named_as_such(tmp_path, case, tex
     with pytest.raises(ModelError, match=named) as refusal:
         Arm.from_urdf(write(tmp_path, arm_urdf(text)))
     assert 'coaxial' not in str(refusal.value)
+
+
+def test_a_mass_of_1e300_at_the_end_of_the_papers_arm_is_too_large_not_two_coaxial_joints(capfd, tmp_path,
+                                                                                         monkeypatch):
+    """It dwarfs link 2 so that M(q) of joints 2 and 3 was singular, which was refused as "two coaxial joints"."""
+    text = default_urdf_path().read_text()
+    heavy = text[:text.index('<link name="link3">')] + text[text.index('<link name="link3">'):].replace(
+        '<mass value="10.0"/>', '<mass value="1e300"/>', 1)
+    err = assert_refused(capfd, tmp_path, monkeypatch, heavy, ["link 'link3'", 'too large for floating point'],
+                         motion={'joint_names': ['joint1', 'joint2', 'joint3'], 'duration': 0.3,
+                                 'profile': 'bang_bang', 'start': [0.0] * 3, 'goal': [0.3] * 3})
+    assert 'coaxial' not in err
+
+
+def test_masses_and_moments_at_the_bound_are_read(tmp_path):
+    """The paper's arm with every mass and moment 1e149 times its own (link 2's and 3's masses 1e150 kg): its M(q)
+    is the paper's M(q) scaled alike."""
+    from ddarm.physics.arm import MAX_URDF_INERTIA
+
+    text = re.sub(r'(value|i[xyz]{2})="([0-9.]+)"', lambda number: f'{number[1]}="{float(number[2]) * 1e149!r}"',
+                  default_urdf_path().read_text())
+    assert f'<mass value="{MAX_URDF_INERTIA!r}"/>' in text
+    q = np.array([0.1, 0.2, 0.3])
+    np.testing.assert_allclose(Arm.from_urdf(write(tmp_path, text)).mass_matrix(q),
+                               1e149 * Arm.from_urdf().mass_matrix(q), rtol=1e-12)
 
 
 @pytest.mark.parametrize('kind, axis', [('revolute', '0 0 1'), ('prismatic', '1 0 0'), ('continuous', '0 0 1')])

@@ -156,6 +156,10 @@ MAX_URDF_BYTES = MAX_FILE_BYTES
 MAX_URDF_LINKS = 1000
 # XML nesting: a URDF nests about 5 levels (robot, link, inertial, origin); each level is a frame of TinyXML2's.
 MAX_URDF_LEVELS = 100
+# The largest mass (kg) and moment or product of inertia (kg m²) read: Pinocchio's M(q) of an arm whose links weigh
+# 1e160 kg is NaN (it multiplies two of them somewhere, which overflows past the square root of the largest double,
+# 1.3e154); a single link of 1e300 kg was refused as "two coaxial joints".
+MAX_URDF_INERTIA = 1e150
 
 
 def _start_element(path: Path, data: bytes, parser, builder, levels: list[int], tag: str, attributes) -> None:
@@ -209,8 +213,10 @@ def _child(path: Path, where: str, element, tag: str, required: bool = False):
     return found[0] if found else None
 
 
-def _number(path: Path, where: str, element, name: str, default: float | None = None) -> float:
-    """Attribute `name` of `element` as a finite number urdfdom reads alike (`default` if absent; None: required)."""
+def _number(path: Path, where: str, element, name: str, default: float | None = None,
+            largest: float = math.inf) -> float:
+    """Attribute `name` of `element` as a finite number urdfdom reads alike (`default` if absent; None: required),
+    of magnitude at most `largest`."""
     text = element.get(name) if element is not None else None
     if text is None:
         if default is None:
@@ -220,6 +226,9 @@ def _number(path: Path, where: str, element, name: str, default: float | None = 
     if not math.isfinite(value):
         raise ModelError(f'URDF {path}: {where}: {name}={text!r} is not a finite decimal number (urdfdom, which '
                          f'Pinocchio reads the URDF with, reads no other)')
+    if abs(value) > largest:
+        raise ModelError(f'URDF {path}: {where}: {name}={text!r} is too large for floating point (ddarm reads up to '
+                         f'{largest:g})')
     return value
 
 
@@ -271,17 +280,16 @@ def _inertia(path: Path, link: str, element) -> pin.Inertia | None:
         return None
     where = f'link {link!r} <inertial>'
     origin = _origin(path, where, inertial)
-    mass = _number(path, f'{where} <mass>', _child(path, where, inertial, 'mass', required=True), 'value')
+    mass = _number(path, f'{where} <mass>', _child(path, where, inertial, 'mass', required=True), 'value',
+                   largest=MAX_URDF_INERTIA)
     tensor = _child(path, where, inertial, 'inertia', required=True)
-    i = {name: _number(path, f'{where} <inertia>', tensor, name) for name in ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz')}
+    i = {name: _number(path, f'{where} <inertia>', tensor, name, largest=MAX_URDF_INERTIA)
+         for name in ('ixx', 'ixy', 'ixz', 'iyy', 'iyz', 'izz')}
     moments = np.array([[i['ixx'], i['ixy'], i['ixz']], [i['ixy'], i['iyy'], i['iyz']], [i['ixz'], i['iyz'], i['izz']]])
     problem = _moments_problem(mass, moments)
     if problem is not None:
         raise ModelError(f'URDF {path}: {where}: {problem}')
-    turned = origin.rotation @ moments @ origin.rotation.T
-    if not np.all(np.isfinite(turned)):
-        raise ModelError(f'URDF {path}: {where}: moments of inertia too large for floating point')
-    return pin.Inertia(mass, origin.translation, turned)
+    return pin.Inertia(mass, origin.translation, origin.rotation @ moments @ origin.rotation.T)
 
 
 def _link_name(path: Path, where: str, element, tag: str, links) -> str:
@@ -346,10 +354,56 @@ def _joint(path: Path, element, links) -> UrdfJoint:
     return UrdfJoint(name, kind, parent, child, origin, axis, lower, upper, velocity, effort, mimic)
 
 
+def _check_tree(path: Path, links: list[str], joints: dict[str, UrdfJoint]) -> None:
+    """Refuse joints that do not join the links into one tree: a cycle, a link with two parent joints, two root
+    links. urdfdom and Pinocchio's builder walk the tree from its root: a cycle crashed Pinocchio (a segfault, not an
+    error) and a second parent gave a model of other joints than the file's. Iterative: up to MAX_URDF_LINKS deep."""
+    children = {}
+    for joint in joints.values():
+        children.setdefault(joint.parent, []).append(joint)
+    # Depth first from each link not reached yet, parent to child: a joint to a link of the current descent closes a
+    # cycle. A link reached again otherwise has two parents, refused below.
+    done, depth = set(), {}  # depth: each link of the current descent, at its index in `descent`
+    for start in links:
+        if start in done:
+            continue
+        descent, through = [(start, iter(children.get(start, ())))], []  # through[k]: descent[k] to descent[k + 1]
+        depth[start] = 0
+        while descent:
+            link, pending = descent[-1]
+            joint = next(pending, None)
+            if joint is None:
+                descent.pop()
+                del depth[link]
+                done.add(link)
+                if through:
+                    through.pop()
+            elif joint.child in depth:
+                names = [repr(step.name) for step in [*through[depth[joint.child]:], joint]]
+                if len(names) > 6:  # a cycle may run through a thousand joints: the line stays readable
+                    names[3:-2] = [f'… ({len(names) - 5} more)']
+                raise ModelError(f'URDF {path}: joints {" → ".join(names)} form a cycle through link '
+                                 f'{joint.child!r}: a URDF is a tree')
+            elif joint.child not in done:
+                depth[joint.child] = len(descent)
+                descent.append((joint.child, iter(children.get(joint.child, ()))))
+                through.append(joint)
+    parents = {}
+    for joint in joints.values():
+        if joint.child in parents:
+            raise ModelError(f'URDF {path}: link {joint.child!r} is the child of two joints '
+                             f'({parents[joint.child]!r}, {joint.name!r}): a URDF is a tree')
+        parents[joint.child] = joint.name
+    roots = [link for link in links if link not in parents]
+    if len(roots) > 1:
+        raise ModelError(f'URDF {path}: links {roots[0]!r} and {roots[1]!r} are both the child of no joint: a URDF '
+                         f'is one tree, with one root link')
+
+
 def read_urdf(path: Path) -> UrdfDescription:
     """The URDF as urdfdom reads it: <robot>'s own <link> and <joint> elements (not those inside <gazebo>, xacro
-    or any other element), every number read by urdfdom's rule; refuses joint types no fixed-base arm model takes
-    and inertials no body has.
+    or any other element), every number read by urdfdom's rule; refuses joint types no fixed-base arm model takes,
+    inertials no body has and joints that do not make the links one tree.
 
     Read from the XML: Pinocchio's parser turns a floating or planar joint into a base of 6 or 3 DOF and a mimic
     joint into an independent one without a word, and gives a link whose <inertial> urdfdom cannot read mass 0.
@@ -358,6 +412,8 @@ def read_urdf(path: Path) -> UrdfDescription:
     if root.tag != 'robot':
         raise ModelError(f'URDF {path}: the root element is <{root.tag}>, not <robot>')
     links = root.findall('link')
+    if not links:
+        raise ModelError(f'URDF {path} has no <link>, which urdfdom requires')
     if len(links) > MAX_URDF_LINKS:
         raise ModelError(f'URDF {path} has {len(links)} links, more than the {MAX_URDF_LINKS} ddarm reads (an arm '
                          f'has tens)')
@@ -379,6 +435,7 @@ def read_urdf(path: Path) -> UrdfDescription:
         if joint.name in joints:
             raise ModelError(f'URDF {path}: joint {joint.name!r} is defined twice')
         joints[joint.name] = joint
+    _check_tree(path, list(inertias), joints)
     return UrdfDescription(text, inertias, joints)
 
 
@@ -460,21 +517,18 @@ def _close(ours: np.ndarray, theirs: np.ndarray, floor: float = 0.0) -> bool:
     return bool(np.all(np.abs(ours - theirs) <= 1e-9 * scale))
 
 
-def _links_at_zero(description: UrdfDescription, disagree) -> tuple[dict, dict]:
-    """Each link's frame in the root link's at q = 0, and the movable joint that carries it ('' for none)."""
+def _links_at_zero(description: UrdfDescription) -> tuple[dict, dict]:
+    """Each link's frame in the root link's at q = 0, and the movable joint that carries it ('' for none); the
+    joints make the links one tree (read_urdf refuses any other)."""
     children = {}
     for joint in description.joints.values():
         children.setdefault(joint.parent, []).append(joint)
-    roots = [link for link in description.inertias
-             if link not in {joint.child for joint in description.joints.values()}]
-    if len(roots) != 1:
-        raise disagree('the root links', roots, 'one')
-    placements, carriers, pending = {roots[0]: pin.SE3.Identity()}, {roots[0]: ''}, [roots[0]]
+    parented = {joint.child for joint in description.joints.values()}
+    root = next(link for link in description.inertias if link not in parented)
+    placements, carriers, pending = {root: pin.SE3.Identity()}, {root: ''}, [root]
     while pending:
         link = pending.pop()
         for joint in children.get(link, ()):
-            if joint.child in placements:
-                raise disagree(f'link {joint.child!r}', 'the child of two joints', 'a tree\'s')
             placements[joint.child] = placements[link] * joint.origin
             carriers[joint.child] = joint.name if joint.kind in MOVABLE else carriers[link]
             pending.append(joint.child)
@@ -495,7 +549,7 @@ def _check_readers_agree(path: Path, description: UrdfDescription, model: pin.Mo
     bodies = {frame.name: index for index, frame in enumerate(model.frames) if frame.type == pin.FrameType.BODY}
     if sorted(bodies) != sorted(description.inertias):
         raise disagree('the links', sorted(description.inertias), sorted(bodies))
-    placements, carriers = _links_at_zero(description, disagree)
+    placements, carriers = _links_at_zero(description)
     data = model.createData()
     zero = pin.neutral(model)
     pin.framesForwardKinematics(model, data, zero)
