@@ -66,8 +66,9 @@ def read_data_bytes(path: Path | str, limit: int = MAX_FILE_BYTES) -> bytes:
     """The bytes of the file at `path`, as read_data_file reads them, not decoded."""
     path = Path(path)
     status = os.stat(path)
-    if not stat.S_ISREG(status.st_mode):
-        raise DataFileError(f'{path} is not a regular file')
+    problem = regular_file_problem(status)
+    if problem is not None:
+        raise DataFileError(f'{path} {problem}')
     if status.st_size > limit:
         raise DataFileError(f'{path} holds {status.st_size} bytes, more than the {limit} it may')
     with path.open('rb') as file:
@@ -75,6 +76,20 @@ def read_data_bytes(path: Path | str, limit: int = MAX_FILE_BYTES) -> bytes:
     if len(data) > status.st_size:
         raise DataFileError(f'{path} grew while it was read')
     return data
+
+
+# What a path that is no regular file is, in the order stat tells them apart.
+_NOT_REGULAR = ((stat.S_ISDIR, 'a directory'), (stat.S_ISFIFO, 'a FIFO'), (stat.S_ISSOCK, 'a socket'),
+                (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'))
+
+
+def regular_file_problem(status: os.stat_result) -> str | None:
+    """What keeps a file of this status from being read as a data file ('is a FIFO, not a regular file': a FIFO
+    or a device would block the read or never end it), or None for a regular file."""
+    if stat.S_ISREG(status.st_mode):
+        return None
+    kind = next((name for test, name in _NOT_REGULAR if test(status.st_mode)), 'of no kind stat knows')
+    return f'is {kind}, not a regular file'
 
 
 def plain_yaml_problem(text: str, reader: str, max_values: int | None = None) -> str | None:

@@ -146,6 +146,20 @@ def test_a_bad_campaign_file_is_refused_naming_the_key_or_job_before_any_search(
     assert not (tmp_path / 'run').exists()
 
 
+@pytest.mark.parametrize('kind, named', [('directory', 'is a directory, not a regular file'),
+                                         ('fifo', 'is a FIFO, not a regular file')])
+def test_a_urdf_or_motion_that_is_no_regular_file_is_refused_saying_what_it_is(capsys, tmp_path, kind, named):
+    target = tmp_path / 'arm.urdf'
+    target.mkdir() if kind == 'directory' else os.mkfifo(target)  # a FIFO is refused from its status, never opened
+    for field, key in (('arm: {urdf: arm.urdf}', 'arm.urdf'),
+                       (f'arm: {{urdf: {Z1 / "z1.urdf"}, model_urdf: arm.urdf}}', 'arm.model_urdf'),
+                       ('motion: {file: arm.urdf}', 'motion.file')):
+        path = write(tmp_path, f'index: I\njobs: [{{law: pd_gravity, {field}}}]\n')
+        assert main(['campaign', str(path), '--out', str(tmp_path / 'run')]) == 2
+        err = capsys.readouterr().err
+        assert err.strip() == f'ddarm campaign: {path}: jobs[0].{key}: {target} {named}', err
+
+
 def test_a_missing_file_an_existing_run_folder_and_an_unreachable_cluster_are_refused(capsys, tmp_path):
     assert main(['campaign', str(tmp_path / 'none.yaml'), '--out', str(tmp_path / 'run')]) == 2
     assert 'none.yaml: cannot read the campaign file' in capsys.readouterr().err

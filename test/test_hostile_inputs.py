@@ -131,7 +131,7 @@ def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
     guard = threading.Timer(30.0, unblock)
     guard.start()
     try:
-        with pytest.raises(MotionError, match='is not a regular file'):
+        with pytest.raises(MotionError, match='is a FIFO, not a regular file'):
             load_motion(path)
     finally:
         guard.cancel()

@@ -31,7 +31,7 @@ from ddarm.control.laws import CONTROLLERS
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
-from ddarm.datafiles import DataFileError, read_data_file
+from ddarm.datafiles import DataFileError, read_data_file, regular_file_problem
 from ddarm.motion.files import DataLoader, shown
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
@@ -187,8 +187,14 @@ class _Reader:
         if not isinstance(value, str) or not value:
             self.fail(where, f'must be a file path, got {shown(value)}')
         path = (self.path.parent / Path(value).expanduser()).resolve()  # relative paths from the campaign file
-        if not path.is_file():
+        try:
+            problem = regular_file_problem(path.stat())
+        except FileNotFoundError:
             self.fail(where, f'{path}: no such file')
+        except OSError as error:
+            self.fail(where, f'{path} cannot be read: {error.strerror}')
+        if problem is not None:
+            self.fail(where, f'{path} {problem}')
         return str(path)
 
     def options(self, where: str, data: dict) -> dict:
