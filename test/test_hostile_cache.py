@@ -12,6 +12,7 @@ import json
 import os
 import pickle
 import shutil
+import stat
 import struct
 import subprocess
 import sys
@@ -417,3 +418,94 @@ def test_the_compiled_loops_refuse_a_cache_folder_others_may_write_and_load_noth
                           capture_output=True, text=True, timeout=300)
     assert done.returncode != 0 and str(unsafe) in done.stderr and 'writable by' in done.stderr, done.stderr
     assert not marker.exists()
+
+
+# Cache files with the right name that are not regular files: each once hung (a FIFO), read 5 GB into memory (a
+# link to /dev/zero) or failed (a folder) every later command. A later command, a new process, must find the entry
+# damaged, say so, remove it (never what a link points to) and compile again.
+HOSTILE_STATE = (np.array([[0.3]]), np.array([[-1.2]]), np.array([[0.7]]))
+# A guard against a hang only (a regression fails instead): a new process imports ddarm and compiles a 1-joint chain.
+HOSTILE_TIMEOUT = 600
+
+
+def report_dynamics(mass: float) -> None:
+    """small_chain(mass)'s inverse dynamics at HOSTILE_STATE, loaded from the cache or compiled, as JSON on stdout."""
+    torque = inverse_dynamics_at(small_chain(mass), *HOSTILE_STATE)
+    print(json.dumps([float(value).hex() for value in np.ravel(torque)]))
+
+
+def _fifo(path: Path, outside: Path) -> None:
+    os.mkfifo(path)
+
+
+def _link_to_zeros(path: Path, outside: Path) -> None:
+    path.symlink_to('/dev/zero')
+
+
+def _folder(path: Path, outside: Path) -> None:
+    path.mkdir()
+    (path / 'inside').write_bytes(b'kept in a folder in place of a cache file')
+
+
+def _link_to_a_folder_outside(path: Path, outside: Path) -> None:
+    path.symlink_to(outside, target_is_directory=True)
+
+
+@pytest.mark.parametrize('kind', ['index', 'data', 'module'])
+@pytest.mark.parametrize('hostile', [_fifo, _link_to_zeros, _folder, _link_to_a_folder_outside],
+                         ids=['fifo', 'link to /dev/zero', 'folder', 'link to a folder outside'])
+def test_a_cache_file_that_is_not_a_regular_file_is_removed_saying_so_and_a_later_command_compiles_again(
+        tmp_path, monkeypatch, capsys, no_chain_loaded, kind, hostile):
+    mass = 3.25
+    chain = small_chain(mass)
+    cache = tmp_path / 'cache'
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(cache))
+    load_from_disk(chain)  # compiled into this test's cache (another test may have left the module imported)
+    expected = [float(value).hex() for value in np.ravel(inverse_dynamics_at(chain, *HOSTILE_STATE))]
+    folder = cache / 'dynamics'
+    files = {'index': sorted((folder / '__pycache__').glob('*.nbi')),
+             'data': sorted((folder / '__pycache__').glob('*.nbc')),
+             'module': [folder / f'{module_name(chain)}.py']}[kind]
+    assert len(files) == (2 if kind in ('index', 'data') else 1)
+    outside = tmp_path / 'outside'
+    outside.mkdir()
+    (outside / 'kept').write_bytes(b'not the cache\'s')
+    for path in files:
+        path.unlink()
+        hostile(path, outside)
+    capsys.readouterr()
+    code = (f'import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import test_hostile_cache; '
+            f'test_hostile_cache.report_dynamics({mass!r})')
+    env = {key: value for key, value in os.environ.items() if not key.startswith('NUMBA_CACHE')}
+    done = subprocess.run([sys.executable, '-c', code], env={**env, dynamics.CACHE_ENVIRONMENT: str(cache)},
+                          capture_output=True, text=True, timeout=HOSTILE_TIMEOUT)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1]) == expected
+    said = done.stderr.splitlines()
+    assert len(said) == len(files), said
+    for path, line in zip(files, said):
+        assert str(path) in line and 'damaged' in line and 'deleted' in line, said
+        status = os.lstat(path)  # written again: the index, data file or module is needed by the next command
+        assert stat.S_ISREG(status.st_mode), f'{path} mode {status.st_mode:o}'
+    assert sorted(outside.iterdir()) == [outside / 'kept']  # a link is removed, never what it points to
+    # Rebuilt: the next process loads the compiled code from the cache, and has nothing to say.
+    load_from_disk(chain)
+    assert capsys.readouterr().err == ''
+    kernels = [sys.modules[module_name(chain)].forward_dynamics, sys.modules[module_name(chain)].inverse_dynamics]
+    assert all(sum(kernel.stats.cache_hits.values()) == 1 for kernel in kernels)
+
+
+def test_a_cache_file_larger_than_any_ddarm_writes_is_not_read_and_is_discarded(tmp_path, monkeypatch, capsys,
+                                                                               no_chain_loaded):
+    chain = small_chain(3.5)
+    cache = tmp_path / 'cache'
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(cache))
+    load_from_disk(chain)
+    index = sorted((cache / 'dynamics' / '__pycache__').glob('*.nbi'))[0]
+    with open(index, 'r+b') as file:  # sparse: the size is what is checked, before anything is read
+        file.truncate(dynamics.CACHE_FILE_LIMIT + 1)
+    capsys.readouterr()
+    load_from_disk(chain)
+    said = capsys.readouterr().err.splitlines()
+    assert len(said) == 1 and str(index) in said[0] and f'{dynamics.CACHE_FILE_LIMIT + 1} bytes' in said[0], said
+    assert 0 < index.stat().st_size < dynamics.CACHE_FILE_LIMIT

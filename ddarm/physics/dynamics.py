@@ -16,6 +16,7 @@ prismatic joints, every arm in config/arms).
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import importlib.machinery
 import importlib.util
@@ -23,6 +24,7 @@ import inspect
 import io
 import os
 import pickle
+import shutil
 import stat
 import sys
 import tempfile
@@ -273,9 +275,17 @@ def _module_file(source: str) -> tuple[str, Path]:
         _private_subfolder(folder)
         # numba keeps the kernels' compiled code here (see _CheckedLocator): checked before anything is read.
         _private_subfolder(folder / '__pycache__')
-        if path.is_file():
-            if path.read_bytes() == content:
-                return name, path
+        try:
+            current = _read_cache_file(path)
+        except FileNotFoundError:
+            current = None
+        except _DamagedFile as damaged:  # a FIFO here would hang the read (and the import), a link read /dev/zero
+            _discard(damaged.path, folder)
+            _say(f'{damaged}: deleted it, writing it again')
+            current = None
+        if current == content:
+            return name, path
+        if current is not None:
             _say(f'{path} is not the code generated for it (truncated or changed): writing it again')
         with tempfile.NamedTemporaryFile('wb', dir=folder, suffix='.tmp', delete=False) as file:
             draft = file.name
@@ -283,7 +293,11 @@ def _module_file(source: str) -> tuple[str, Path]:
         try:
             os.link(draft, path)  # fails if another process wrote it first: its file stands
         except FileExistsError:
-            if path.read_bytes() != content:
+            try:
+                written = _read_cache_file(path)
+            except (FileNotFoundError, _DamagedFile):
+                written = None
+            if written != content:
                 os.replace(draft, path)
         except OSError:  # a file system without hard links
             os.replace(draft, path)
@@ -302,14 +316,85 @@ class _DamagedFile(Exception):
         self.path = path
 
 
+# The most a file of the cache may weigh. The largest ddarm writes are numba's compiled code of the batch engine's
+# chunk loop and of an 8-joint arm's unrolled forward dynamics, about 0.6 MB each (a generated module is at most
+# about 125 kB, an index 2 kB): 64 MiB is a hundred times that, and a bound on what a file swapped in (a link to
+# /dev/zero, a huge file) costs to read before it is found damaged.
+CACHE_FILE_LIMIT = 64 << 20
+
+_NOT_FILES = ((stat.S_ISLNK, 'a symbolic link'), (stat.S_ISDIR, 'a folder'), (stat.S_ISFIFO, 'a FIFO'),
+              (stat.S_ISSOCK, 'a socket'), (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'))
+
+
+def _why_damaged(status: os.stat_result) -> str | None:
+    """Why a cache file of this status (lstat or fstat) is not to be read, or None."""
+    if not stat.S_ISREG(status.st_mode):
+        kind = next((name for test, name in _NOT_FILES if test(status.st_mode)), 'of an unknown kind')
+        return f'is damaged ({kind}, not a regular file)'
+    if status.st_size > CACHE_FILE_LIMIT:
+        return f'is damaged ({status.st_size} bytes, more than any cache file ddarm writes, {CACHE_FILE_LIMIT})'
+    return None
+
+
+def _read_cache_file(path) -> bytes:
+    """The content of the cache file `path`, read only if it is a regular file (not a symbolic link, a FIFO, a
+    device or a folder) of at most CACHE_FILE_LIMIT bytes, else _DamagedFile; FileNotFoundError if there is none.
+    Checked with lstat before it is opened, and opened neither following a link nor waiting for a FIFO's writer,
+    so that what is swapped in between is found by fstat, not hung on."""
+    path = str(path)
+    why = _why_damaged(os.lstat(path))
+    if why is not None:
+        raise _DamagedFile(path, why)
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as error:
+        if error.errno in (errno.ELOOP, errno.ENXIO):  # a link, a socket
+            raise _DamagedFile(path, 'is damaged (not a regular file)') from None
+        raise
+    try:
+        why = _why_damaged(os.fstat(descriptor))
+        if why is not None:
+            raise _DamagedFile(path, why)
+        chunks, size = [], 0
+        while chunk := os.read(descriptor, min(1 << 20, CACHE_FILE_LIMIT + 1 - size)):
+            chunks.append(chunk)
+            size += len(chunk)
+            if size > CACHE_FILE_LIMIT:
+                raise _DamagedFile(path, f'is damaged (more than any cache file ddarm writes, {CACHE_FILE_LIMIT} '
+                                         f'bytes)')
+        return b''.join(chunks)
+    finally:
+        os.close(descriptor)
+
+
+def _discard(path: str, folder) -> None:
+    """Removes the damaged file `path` of the checked cache folder `folder`: a file, FIFO or symbolic link is
+    unlinked (a link's target is never touched); a folder is removed with all it holds only if it is one directly
+    in `folder`, inside cache_folder() (shutil.rmtree follows no link)."""
+    try:
+        status = os.lstat(path)
+        if not stat.S_ISDIR(status.st_mode):
+            os.unlink(path)
+            return
+        parent = Path(path).parent.resolve()
+        if parent != Path(folder).resolve() or not parent.is_relative_to(cache_folder()):
+            raise ModelError(f'{path} is a folder where a file of the dynamics cache belongs, outside the cache '
+                             f'{cache_folder()}: not removing it; remove it')
+        shutil.rmtree(path)
+    except FileNotFoundError:  # another process removed it first
+        pass
+    except OSError as error:
+        raise ModelError(f'{path} is damaged, and cannot be removed ({error.strerror or error}); remove it, or set '
+                         f'{CACHE_ENVIRONMENT} to another folder') from error
+
+
 class _ChecksummedFiles(IndexDataCacheFile):
     """numba's index and data files of a kernel, each written with the SHA-256 of its content in front and read
     only if it matches: a truncated or overwritten file is found before pickle or LLVM sees it (one wrong byte
     of compiled code could crash the process or change a number)."""
 
     def _verified(self, path: str) -> bytes:
-        with open(path, 'rb') as file:
-            content = file.read()
+        content = _read_cache_file(path)
         digest, payload = content[:_DIGEST], content[_DIGEST:]
         if len(content) < _DIGEST or hashlib.sha256(payload).digest() != digest:
             raise _DamagedFile(path, 'is damaged (its checksum does not match)')
@@ -390,10 +475,17 @@ class _CheckedCache(FunctionCache):
         try:
             return super().load_overload(sig, target_context)
         except _DamagedFile as damaged:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(damaged.path)
+            _discard(damaged.path, self.cache_path)
             _say(f'{damaged}: deleted it, compiling {self._what} again')
             return None
+
+    def save_overload(self, sig, data):
+        try:
+            super().save_overload(sig, data)
+        except _DamagedFile as damaged:  # the index, damaged since load_overload read it
+            _discard(damaged.path, self.cache_path)
+            _say(f'{damaged}: deleted it, caching {self._what} again')
+            super().save_overload(sig, data)
 
 
 def generated_kernel(options: dict):
