@@ -193,3 +193,23 @@ def test_an_in_process_episode_takes_a_non_utf8_file_name(tmp_path):
     done = subprocess.run([os.fsencode(DDARM), b'episode', b'--controller', b'computed_torque', b'--omega', b'15',
                            b'--urdf', b'arm\xff.urdf'], cwd=tmp_path, capture_output=True, timeout=60)
     assert done.returncode == 0 and b'I1 (2.5)' in done.stdout, done.stderr
+
+
+def test_a_refusal_naming_a_name_of_megabytes_shows_its_ends_only(tmp_path, capsys):
+    name = 'j' * 2_000_000 + 'END'
+    urdf = tmp_path / 'arm.urdf'
+    urdf.write_text((ROOT / 'config' / 'ddarm.urdf').read_text().replace('name="joint2"', f'name="{name}"'))
+    assert main(['episode', '--controller', 'computed_torque', '--omega', '15', '--urdf', str(urdf)]) == 2
+    err = capsys.readouterr().err
+    assert len(err) < 1000 and err.startswith(f'ddarm episode: URDF {urdf}: give a motion file'), err
+    assert f"'{'j' * 199}…<1999706 characters>…{'j' * 95}END', 'joint3']" in err  # the word is 'j…END',
+
+
+def test_a_node_refusal_naming_a_name_of_megabytes_shows_its_ends_only(tmp_path):
+    parameters = tmp_path / 'gains.yaml'
+    parameters.write_text('computed_torque:\n  ros__parameters:\n    kp: [1.0, 2.0, 3.0]\n    kv: [1.0, 2.0, 3.0]\n'
+                          f"    motion: {'m' * 100_000}.yaml\n")
+    done = subprocess.run([sys.executable, str(ROOT / 'scripts' / 'computed_torque'), '--ros-args', '--params-file',
+                           str(parameters)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and 'refused to start' in done.stdout and 'characters>…' in done.stdout
+    assert len(done.stdout) < 2000, done.stdout[:3000]

@@ -11,9 +11,9 @@ from ddarm.strict_json import json_text
 
 @contextlib.contextmanager
 def terminal_streams():
-    """sys.stdout and sys.stderr as TerminalStreams within the block."""
+    """sys.stdout and sys.stderr as TerminalStreams within the block; stderr's carries messages only."""
     streams = sys.stdout, sys.stderr
-    sys.stdout, sys.stderr = TerminalStream(sys.stdout), TerminalStream(sys.stderr)
+    sys.stdout, sys.stderr = TerminalStream(sys.stdout), TerminalStream(sys.stderr, messages=True)
     try:
         yield
     finally:

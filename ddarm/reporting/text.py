@@ -23,6 +23,10 @@ _MARKDOWN_PUNCTUATION = frozenset('\\`*_[]|')
 _REFERENCES = {'&': '&amp;', '<': '&lt;', '~': '&#126;', '$': '&#36;'}
 _BACKTICKS = re.compile('`+')
 _PLAIN_ASCII = re.compile('[\n\t\x20-\x7e]*')
+# A message's words longer than this (a joint name of megabytes from a file) are shown by their ends: a message
+# names a thing for a person to find it, and a path or a name this long is found by its start and end.
+LONGEST_WORD = 500
+_LONG_WORD = re.compile(r'\S{%d,}' % (LONGEST_WORD + 1))
 
 
 def visible(text, pictures: bool = True) -> str:
@@ -50,6 +54,13 @@ def terminal_text(text) -> str:
         return text
     return ''.join(character if character in '\n\t' or unicodedata.category(character) not in _INVISIBLE_CATEGORIES
                    else f'<U+{ord(character):04X}>' for character in text)
+
+
+def shortened(text) -> str:
+    """`text` (str() of it) with every run of more than LONGEST_WORD non-space characters cut to its first 200 and
+    last 100, the count of those left out between them: a message stays a message, whatever it names."""
+    return _LONG_WORD.sub(lambda word: f'{word[0][:200]}…<{len(word[0]) - 300} characters>…{word[0][-100:]}',
+                          str(text))
 
 
 def figure_text(text) -> str:
@@ -87,13 +98,15 @@ def markdown_code(text) -> str:
 class TerminalStream:
     """A text stream that writes what it is given through terminal_text to `target`: everything a command prints
     (tables, messages, warnings) holds names and paths from files. `target` stays reachable for a progress bar,
-    whose own carriage returns and escapes must reach the terminal."""
+    whose own carriage returns and escapes must reach the terminal. `messages`: the stream carries messages only
+    (stderr), never data, so their overlong words are `shortened`."""
 
-    def __init__(self, target) -> None:
+    def __init__(self, target, messages: bool = False) -> None:
         self.target = target
+        self.messages = messages
 
     def write(self, text: str) -> int:
-        self.target.write(terminal_text(text))
+        self.target.write(terminal_text(shortened(text) if self.messages else text))
         return len(text)
 
     def __getattr__(self, name: str):

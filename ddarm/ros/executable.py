@@ -11,6 +11,7 @@ import sys
 import weakref
 from collections.abc import Callable, Sequence
 
+from ddarm.reporting.text import shortened
 from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
 
 REFUSED = 2  # the exit code of a node that refused to start
@@ -80,7 +81,7 @@ def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequen
     from rclpy.exceptions import ParameterException
 
     def refuse(error) -> int:
-        print(f'{name}: refused to start: {error}', file=out, flush=True)
+        print(f'{name}: refused to start: {shortened(error)}', file=out, flush=True)
         return REFUSED
 
     if follow:
@@ -153,7 +154,7 @@ def run_node(make_node: Callable, name: str, refusals: tuple, args=None) -> int:
                 with critical_section():
                     executor.spin_once(timeout_sec=SIGNAL_CHECK_PERIOD_S)
         except (*refusals, ParameterException, ParameterFileError) as error:
-            print(f'{name}: refused to start: {error}', flush=True)
+            print(f'{name}: refused to start: {shortened(error)}', flush=True)
             return REFUSED
         finally:
             executor.shutdown()  # before the node is destroyed and the context shut down
