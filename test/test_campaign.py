@@ -112,6 +112,11 @@ BAD_FILES = [
                                                               'needs a name'),
     ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a}, {name: a}]\n', "scenarios: the name 'a' is given 2 times"),
     ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a/b}]\n', 'scenarios[0].name: must be a name'),
+    # paper.trajectory-1.pd_gravity. and 221 characters: 251, and .mcap makes 256, one more than a file name holds.
+    (f"index: I\nlaws: [pd_gravity]\nscenarios: [{{name: {'s' * 221}, tau: 0.1}}]\n",
+     f"the job paper.trajectory-1.pd_gravity.{'s' * 221} (of the product): its name 'paper.trajectory-1.pd_gravity.s"),
+    (f"index: I\njobs: [{{name: {'j' * 251}, law: pd_gravity}}]\n", '(251 characters) names its bag\'s storage file '
+                                                                   'and gains file'),
     ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, payload: 2}]\n', "scenarios[0]: unknown key 'payload'"),
     ('index: I\nlaws: [pd_gravity]\nmotions: [{trajectory: 1, file: x.yaml}]\n', 'motions[0]: give one of trajectory'),
     ('index: I\nlaws: [pd_gravity]\nmotions: [{trajectory: 3}]\n', 'motions[0].trajectory: must be one of (1, 2)'),

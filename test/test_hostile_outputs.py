@@ -26,7 +26,7 @@ from ddarm.paper.report import write_report
 from ddarm.paper.schema import Results
 from ddarm.recording.runs import RunFolder
 from ddarm.reporting.html import HtmlReportError, markdown_to_html
-from ddarm.reporting.text import markdown_code, markdown_text, visible
+from ddarm.reporting.text import markdown_code, markdown_paragraph, markdown_text, visible
 from ddarm.tuning.campaign import Campaign, summary_table
 from ddarm.tuning.report import episode_figure, write_tuning_report
 from test_report import CONTROLLERS, bags, synthetic_results  # noqa: F401 (bags: the recorded-episode fixture)
@@ -196,6 +196,17 @@ def test_markdown_text_and_code_render_as_the_text_itself():
     for text in (refresh_to(1), SCRIPT, NEWLINE, MARKDOWN, BIDI, '`', '``a`', 'C:\\', '| a |', '&lt;', 'a_b_c', '_a_b_'):
         rendered = markdown.Markdown(extensions=['tables']).convert(f'{markdown_text(text)} and {markdown_code(text)}')
         assert HTMLText(rendered).text == f'{visible(text)} and {visible(text)}', (text, rendered)
+
+
+@pytest.mark.parametrize('text', ['# a heading', '### three', '> a quote', '- an item', '+ an item', '* an item',
+                                  '1. first', '12) twelfth', '---', '***', '___', '    indented code', '```fence',
+                                  '~~~fence', '<div>', '=== x', '#no space', 'plain 1. text'])
+def test_a_markdown_paragraph_opens_no_other_block(text):
+    import markdown
+
+    rendered = markdown.Markdown(extensions=['tables']).convert(f'# Title\n\n{markdown_paragraph(text)}\n')
+    assert rendered.startswith('<h1>Title</h1>\n<p>') and rendered.count('<') == 4, rendered
+    assert HTMLText(rendered).text == 'Title\n' + visible(text).lstrip(' '), rendered
 
 
 def test_the_reproduction_report_shows_the_command_and_folder_as_text(tmp_path, monkeypatch):

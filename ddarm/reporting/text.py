@@ -85,6 +85,21 @@ def markdown_text(text) -> str:
     return ''.join(escaped)
 
 
+# What opens a block when a line starts with it: a heading, a quote, a list item or a thematic break. A numbered
+# item (1. or 1)) is opened by its digits' following . or ).
+_BLOCK_OPENERS = frozenset('#>-+')
+_NUMBERED_ITEM = re.compile(r'(\d+)([.)])')
+
+
+def markdown_paragraph(text) -> str:
+    """Markdown that renders as `text` (str() of it) in a paragraph of its own: markdown_text, and what would
+    open another block at the line's start (a heading, quote, list, thematic break, indented code) taken as text."""
+    escaped = markdown_text(text).lstrip(' ')  # leading spaces: a paragraph drops up to 3; 4 open a code block
+    if escaped[:1] in _BLOCK_OPENERS:
+        return '\\' + escaped
+    return _NUMBERED_ITEM.sub(r'\1\\\2', escaped, count=1) if _NUMBERED_ITEM.match(escaped) else escaped
+
+
 def markdown_code(text) -> str:
     """A Markdown code span that renders as `text` (str() of it), literally and on one line; not for table cells,
     where GitHub would split it at a |."""

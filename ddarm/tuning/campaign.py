@@ -36,7 +36,7 @@ from ddarm.motion.files import DataLoader, shown
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
 from ddarm.recording.runs import RunFolder, write_new_file
-from ddarm.reporting.text import figure_text, markdown_text
+from ddarm.reporting.text import figure_text, markdown_paragraph, markdown_text
 from ddarm.tuning.jobs import Job
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 from ddarm.tuning.outputs import AGREEMENT, relative_difference, write_gains
@@ -54,6 +54,10 @@ SCENARIO_KEYS = ('name', 'tau', 'mass_scale', 'external_torque', 'viscous_fricti
 JOB_KEYS = ('name', 'arm', 'motion', 'law', 'scenario', *OPTION_KEYS)
 # A name becomes part of a job's name and so of its bag's and gains file's names: one plain word each.
 NAME = re.compile(r'[A-Za-z0-9][A-Za-z0-9_+-]*')
+# The longest file name made from a job's name (its bag's MCAP storage file, its gains file <name>.yaml): within
+# the NAME_MAX bytes of Linux's file systems. Names are ASCII, a byte a character.
+JOB_FILE_SUFFIX = '.mcap'
+NAME_MAX = 255
 # A campaign's jobs, the product's and the listed ones: each is checked (its episode planned) before any search, and
 # each runs a search of its budget; far beyond any campaign run, and refused before the first is built.
 MAX_JOBS = 1000
@@ -344,6 +348,10 @@ def parse_campaign(text: str, path: Path) -> Campaign:
         job = _job(reader, where, name, arm, motion, law, scenario, {**shared, **options})
         if job.name in seen:
             reader.fail(where, f'its name {shown(job.name)} is also that of {seen[job.name]}: give the job a name')
+        if len(job.name) + len(JOB_FILE_SUFFIX) > NAME_MAX:
+            reader.fail(where, f'its name {shown(job.name)} ({len(job.name)} characters) names its bag\'s storage '
+                               f'file and gains file ({shown(job.name + JOB_FILE_SUFFIX)}), longer than the {NAME_MAX} '
+                               'bytes a file name may have: give the job a shorter name')
         seen[job.name] = where
         try:
             warnings += [f'{job.name}: {warning}' for warning in check_episode(job.template).warnings]
@@ -553,7 +561,7 @@ def summary_table(campaign: Campaign, records: list[dict]) -> str:
     """SUMMARY.md: one row per job, the search's index beside its bag's, and each failure's reason."""
     lines = [f'# Campaign {markdown_text(campaign.path.name)}', '']
     if campaign.description:
-        lines += [markdown_text(campaign.description), '']
+        lines += [markdown_paragraph(campaign.description), '']
     lines += ['Every *bag* number is scored from the job\'s bag (`ddarm score <bag>` recomputes it); *search* is the '
               'value the search found in-process.', '',
               '| job | arm | motion | law | scenario | index | search | bag | status |',
