@@ -48,7 +48,8 @@ GRAPH_CHECK_PERIOD = 0.5
 DISCOVERY_SETTLE = 1.0
 PEER_LOSS_GRACE = 1.0
 # A node process that ended is gone from the graph once discovery forgets it: at once when its participant's
-# goodbye is heard, or when its lease (Fast DDS: 20 s) runs out if that was lost or the process was killed.
+# goodbye is heard, or when its lease runs out if that was lost or the process was killed (a session's nodes
+# announce 5 s, ddarm.ros.session.NODE_LEASE_S; Fast DDS's default is 20 s, a hand-started node's).
 DEPARTURE_TIMEOUT = 25.0
 # A plant that owes the next state (its command was heard) and sends nothing for this long has
 # stalled or died; DDS itself notices a killed process only after its 20 s lease.

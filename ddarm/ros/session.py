@@ -26,6 +26,43 @@ from ddarm.episodes.result import Episodes
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
 
 
+# The DDS lease that a session's node processes announce (Fast DDS: `leaseDuration`, 20 s by default), and how
+# often they renew it. A node process that ended is forgotten by discovery at once when its goodbye is heard, or
+# when its lease runs out if the goodbye was lost (a loaded machine) or it was killed; the next law's start waits
+# for that (GraphDriver.wait_until_gone), so the lease is a few seconds, well within DEPARTURE_TIMEOUT. A live node
+# loses its place only after NODE_LEASE_S without one of its renewals, sent every NODE_LEASE_RENEWAL_S.
+NODE_LEASE_S = 5
+NODE_LEASE_RENEWAL_S = 1
+# Where Fast DDS reads a participant's default profile from (older and newer names); a user's own file is kept.
+PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+NODE_PROFILE = f"""<?xml version="1.0" encoding="UTF-8"?>
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <participant profile_name="ddarm_session_node" is_default_profile="true">
+    <rtps>
+      <builtin>
+        <discovery_config>
+          <leaseDuration><sec>{NODE_LEASE_S}</sec></leaseDuration>
+          <leaseAnnouncement><sec>{NODE_LEASE_RENEWAL_S}</sec></leaseAnnouncement>
+        </discovery_config>
+      </builtin>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def node_environment(folder: Path) -> dict:
+    """The environment of a session's node process: child_environment, and a participant profile in `folder`
+    that announces a lease of NODE_LEASE_S, unless the user gave Fast DDS a profile of their own."""
+    environment = child_environment()
+    if not any(environment.get(variable) for variable in PROFILE_VARIABLES):
+        profile = folder / 'fastdds_profile.xml'
+        if not profile.is_file():
+            profile.write_text(NODE_PROFILE)
+        environment[PROFILE_VARIABLES[0]] = str(profile)
+    return environment
+
+
 def session_namespace() -> str:
     """A namespace no other graph on this machine or network uses.
 
@@ -82,7 +119,7 @@ class GraphSession:
             self.processes[name] = subprocess.Popen(
                 [sys.executable, '-m', *module, '--ros-args', *namespace_arguments(self.namespace),
                  '--params-file', str(path)],
-                stdout=log, stderr=subprocess.STDOUT, env=child_environment(), start_new_session=True)
+                stdout=log, stderr=subprocess.STDOUT, env=node_environment(self.folder), start_new_session=True)
         self.arms[name] = dict(arm)
 
     def use_nodes(self, spec: EpisodeSpec) -> None:
