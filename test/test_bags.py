@@ -503,8 +503,14 @@ def _spec_with(**changes):
 
 @pytest.mark.parametrize('episode, refused', [
     (_spec_with(gain_schedule=True), r"holds a spec that cannot be run: .*unexpected keyword argument 'gain_schedule'"),
-    (_spec_with(kp='stiff'), 'holds a spec that cannot be run: could not convert string to float'),
-    (_spec_with(kp=225.0), 'holds a spec that cannot be run: .*not iterable'),
+    (_spec_with(kp='stiff'), r"holds the spec kp 'stiff', not a tuple\[float, \.\.\.\]"),
+    (_spec_with(kp=225.0), r'holds the spec kp 225.0, not a tuple\[float, \.\.\.\]'),
+    (_spec_with(kp=['225', '225', '225']), r"holds the spec kp \['225', '225', '225'\], not a tuple"),
+    (_spec_with(kv=[True, 30.0, 30.0]), r'holds the spec kv \[True, 30.0, 30.0\], not a tuple'),
+    (_spec_with(tau=True), "holds the spec tau True, not a <class 'float'>"),
+    (_spec_with(trajectory=1.0), "holds the spec trajectory 1.0, not a <class 'int'>"),
+    (_spec_with(urdf=5), r'holds the spec urdf 5, not a str \| None'),
+    (_spec_with(torque_limit=[1, 'a', 2]), r"holds the spec torque_limit \[1, 'a', 2\], not a str \| tuple"),
     (_spec_with(controller='lqr'), 'holds a spec that cannot be run: controller must be one of'),
     (_spec_with(torque_limit='maximum'), "holds a spec that cannot be run: torque_limit must be 'none', 'paper'"),
     (_spec_with(tau=5.0), 'holds a spec that cannot be run: .*tau'),
@@ -664,3 +670,13 @@ def test_a_prismatic_field_that_is_not_one_flag_per_joint_is_refused_naming_it(t
 def test_a_prismatic_field_of_one_flag_per_joint_is_taken(tmp_path):
     scored = score_bag(synthetic_bag(tmp_path / 'bag', episode={**_spec_with(), 'prismatic': [True, False, False]}))
     assert scored['max_abs_error_deg'][0] is None and scored['max_abs_error_deg'][1] == pytest.approx(np.degrees(0.01))
+
+
+def test_a_second_episode_configuration_is_refused(good_bag, tmp_path, capsys):
+    with Reader(good_bag) as reader:
+        (connection,) = [c for c in reader.connections if c.topic == '/ddarm/episode']
+        ((_, timestamp, raw),) = list(reader.messages(connections=[connection]))
+    bag = copy_bag(good_bag, tmp_path / 'bag', extra=[('/ddarm/episode', timestamp + 1, raw)])
+    assert main(['score', str(bag)]) == 2
+    assert capsys.readouterr().err == (f'ddarm score: {bag}: /ddarm/episode holds 2 configurations, not one: which '
+                                       'one the episode ran is unknown\n')

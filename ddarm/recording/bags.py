@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import types
+import typing
 import weakref
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
@@ -464,8 +466,10 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
             received = messages[connection.topic]
             _check_message_count(path, connection.topic, len(received) + 1)
             received.append(deserialize(raw, connection.msgtype))
-    if not messages[EPISODE_TOPIC]:
-        raise BagError(f'{path}: {EPISODE_TOPIC} holds no configuration')
+    if len(messages[EPISODE_TOPIC]) != 1:
+        raise BagError(f'{path}: {EPISODE_TOPIC} holds {len(messages[EPISODE_TOPIC])} configurations, not one: '
+                       'which one the episode ran is unknown' if messages[EPISODE_TOPIC]
+                       else f'{path}: {EPISODE_TOPIC} holds no configuration')
     episode, period, joints = _episode_configuration(path, messages[EPISODE_TOPIC][0].data)
     if len(joints) > MAX_JOINTS:
         raise BagError(f'{path}: {EPISODE_TOPIC} names {len(joints)} joints, more than the {MAX_JOINTS} an arm may '
@@ -531,6 +535,34 @@ def _episode_configuration(path: Path, text: str) -> tuple[dict, float, list[str
     return episode, float(period), joints
 
 
+def _fits(value, hint) -> bool:
+    """Whether a JSON value has the type an EpisodeSpec field is annotated with: a float field takes an int, a
+    bool is never a number, a tuple is a JSON list."""
+    origin, arguments = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, argument) for argument in arguments)
+    if origin is tuple:
+        return isinstance(value, list) and all(_fits(item, arguments[0]) for item in value)
+    if hint is type(None):
+        return value is None
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _checked_spec(path: Path, spec: dict) -> dict:
+    """The recorded spec, each field of the type EpisodeSpec declares (EpisodeSpec itself converts, so that a
+    bool or a numeric string would pass for a number); BagError naming the field otherwise."""
+    hints = typing.get_type_hints(EpisodeSpec)
+    for name, value in spec.items():
+        if name in hints and not _fits(value, hints[name]):
+            raise BagError(f'{path}: {EPISODE_TOPIC} holds the spec {name} {shown(value)}, not a {hints[name]}: not '
+                           'the configuration ddarm records')
+    return spec
+
+
 def _values(path: Path, values, what: str, field: str, joints: list) -> np.ndarray:
     """A recorded field as the nodes check it on arrival: one finite number per joint."""
     try:
@@ -548,7 +580,7 @@ def bag_result(bag: BagEpisode) -> Episodes:
     """
     path = bag.path
     try:
-        spec = EpisodeSpec(**bag.episode['spec'])
+        spec = EpisodeSpec(**_checked_spec(path, bag.episode['spec']))
     except (TypeError, ValueError) as error:  # EpisodeError is a ValueError
         raise BagError(f'{path}: {EPISODE_TOPIC} holds a spec that cannot be run: {error}') from error
     limit = bag.episode.get('torque_limit')
