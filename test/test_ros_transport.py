@@ -101,6 +101,45 @@ def test_a_stopped_node_is_waited_for_until_the_graph_forgets_it_and_named_if_it
             rclpy.try_shutdown(context=context)
 
 
+def test_a_node_name_discovery_keeps_without_any_endpoint_is_no_node_on_the_graph():
+    """On a busy machine discovery kept a stopped controller's name for good, with no endpoint: make run failed
+    with 'still on the graph 25 s after its process ended'. Such a name is no node, and does not double a live one."""
+    import rclpy
+
+    from ddarm.ros.driver import GraphDriver
+    from ddarm.ros.session import session_namespace
+
+    namespace = session_namespace()
+    contexts = [rclpy.Context(), rclpy.Context(), rclpy.Context()]
+    for context in contexts:
+        rclpy.init(args=[], context=context)
+    driver = GraphDriver(namespace=namespace, context=contexts[0])
+    # A name without endpoints, as the graph shows a departed node's: no rosout, parameter services or events.
+    ghost = rclpy.create_node('pd_gravity', namespace=namespace, context=contexts[1], enable_rosout=False,
+                              start_parameter_services=False)
+    ghost.destroy_publisher(ghost._parameter_event_publisher)
+    live = None
+    try:
+        deadline = time.monotonic() + 20
+        while ('pd_gravity', namespace) not in driver.get_node_names_and_namespaces():
+            assert time.monotonic() < deadline, 'the driver never heard of the name'
+            time.sleep(0.05)
+        assert driver.graph_nodes()[f'{namespace}/pd_gravity'] == 0
+        driver.wait_until_gone(['pd_gravity'], timeout=0.3)
+        live = rclpy.create_node('pd_gravity', namespace=namespace, context=contexts[2])
+        while driver.graph_nodes()[f'{namespace}/pd_gravity'] == 0:
+            assert time.monotonic() < deadline + 20, 'the driver never saw the live node'
+            time.sleep(0.05)
+        assert [name for name, ns in driver.get_node_names_and_namespaces() if ns == namespace].count('pd_gravity') == 2
+        assert driver.graph_nodes()[f'{namespace}/pd_gravity'] == 1
+    finally:
+        for node in (driver, ghost, live):
+            if node is not None:
+                node.destroy_node()
+        for context in contexts:
+            rclpy.try_shutdown(context=context)
+
+
 def test_a_killed_node_of_a_session_is_forgotten_within_its_short_lease_and_the_next_law_runs(tmp_path):
     import os
     import signal

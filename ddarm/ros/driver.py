@@ -70,6 +70,8 @@ UNWRITTEN_LIMIT = 256
 COMMAND_SUBSCRIBERS = 2
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+# The topics every ROS node publishes by default (rcl's parameter events and log).
+GLOBAL_NODE_TOPICS = ('/parameter_events', '/rosout')
 # The topics of every sample, heard from sample 0 on.
 RECORDED_SAMPLE_TOPICS = ('/' + JOINT_STATES_TOPIC, '/' + EFFORT_COMMAND_TOPIC, CLOCK_TOPIC)
 # The profile each recorded topic's publisher declares (ddarm.ros.interface).
@@ -228,8 +230,23 @@ class GraphDriver(Node):
                 for topic, (resolved, _) in self.topic_owners(law).items()}
 
     def graph_nodes(self) -> Counter:
-        """The fully qualified name of every node on the graph, with how many nodes bear it."""
-        return Counter(fully_qualified(name, namespace) for name, namespace in self.get_node_names_and_namespaces())
+        """The fully qualified name of every node on the graph, with how many nodes bear it: nodes as their endpoints
+        show them, one per name and DDS participant (the first 12 bytes of an endpoint's GID, its GUID prefix).
+
+        Not the graph's list of node names: discovery can keep a node's name after its process ended, without any
+        endpoint, for good (its word of the node, heard after its participant's goodbye, adds it back; seen on a
+        busy machine), and a name that owns no endpoint can do nothing on the graph. The topics read are this
+        driver's namespace's and the two every ROS node has endpoints on unless told otherwise (a few ms in all).
+        """
+        prefix = self.get_namespace().rstrip('/') + '/'
+        topics = [topic for topic, _ in self.get_topic_names_and_types()
+                  if topic.startswith(prefix) or topic in GLOBAL_NODE_TOPICS]
+        nodes = set()
+        for topic in topics:
+            for info in (*self.get_publishers_info_by_topic(topic), *self.get_subscriptions_info_by_topic(topic)):
+                if UNKNOWN_NODE not in info.node_name:
+                    nodes.add((fully_qualified(info.node_name, info.node_namespace), bytes(info.endpoint_gid[:12])))
+        return Counter(name for name, _ in nodes)
 
     def graph_problems(self, law: str) -> tuple[list[str], list[str]]:
         """(foreign, missing): what is on the graph that must not be, and who is not there yet."""
