@@ -232,3 +232,15 @@ def test_gains_or_friction_beyond_floating_point_run_and_say_the_stability_was_n
     assert result['diverged'] and 'Traceback' not in captured.err and 'RuntimeWarning' not in captured.err
     assert ('the stability of the gains was not checked: the linearised loop is not finite: its gains, friction or '
             'arm are too large for floating point') in result['warnings']
+
+
+@pytest.mark.parametrize('max_error, shown', [(['1e308'], '1e+308 deg'), (['-1'], '-1 deg'), (['1', '5730', '1'], '5730 deg')])
+def test_a_permitted_error_beyond_the_plants_bound_is_refused_in_the_users_units(capsys, tmp_path, max_error, shown):
+    code = main(['omega', '--controller', 'computed_torque', '--duration', '0.2', '--disturbance', '5', '5', '5',
+                 '--max-error', *max_error, '--runs', str(tmp_path)])
+    captured = capsys.readouterr()
+    joint = 'joint2' if len(max_error) == 3 else 'joint1'
+    assert code == 2 and captured.err == (f'ddarm omega: --max-error for {joint}: {shown}, not within (0, 5729.58] '
+                                          "deg (the plant's bound on a position, beyond which an episode counts as "
+                                          'diverged)\n')
+    assert not any(tmp_path.iterdir())

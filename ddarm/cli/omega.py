@@ -12,6 +12,7 @@ import numpy as np
 from ddarm.cli.arguments import episode_spec
 from ddarm.cli.output import format_vector, print_json
 from ddarm.episodes.spec import EpisodeError, check_episode, loop_stability_warnings
+from ddarm.physics.plant import DEFAULT_MAX_POSITION
 
 
 def command_omega(args: argparse.Namespace) -> int:
@@ -39,6 +40,7 @@ def command_omega(args: argparse.Namespace) -> int:
         print(f'ddarm omega: WARNING: {warning}', file=sys.stderr)
     # Degrees for a revolute joint, millimetres for a prismatic one: both to SI.
     prismatic = np.array(plan.prismatic, dtype=bool)
+    check_permitted_errors(args.max_error, prismatic, plan.joint_names)
     permitted = np.where(prismatic, np.asarray(args.max_error) * 1e-3, np.radians(args.max_error))
     choice = omega_procedure(spec, permitted, args.torque_factor, args.omega_step, args.omega_max)
     stability_warnings = () if choice.omega is None else tuple(loop_stability_warnings(
@@ -58,6 +60,19 @@ def command_omega(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def check_permitted_errors(max_error, prismatic: np.ndarray, joints) -> None:
+    """--max-error: each positive and within the plant's bound on a position (100 rad, 100 m), beyond which the
+    episode counts as diverged, so no larger error is a requirement; EpisodeError naming the joint, in the user's
+    units (deg or mm), otherwise."""
+    given = np.broadcast_to(np.asarray(max_error, dtype=float), prismatic.shape)
+    bound = np.where(prismatic, DEFAULT_MAX_POSITION * 1e3, np.degrees(DEFAULT_MAX_POSITION))
+    for joint, value, largest, linear in zip(joints, given, bound, prismatic):
+        if not 0 < value <= largest:
+            unit = 'mm' if linear else 'deg'
+            raise EpisodeError(f'--max-error for {joint}: {value:g} {unit}, not within (0, {largest:g}] {unit} (the '
+                               "plant's bound on a position, beyond which an episode counts as diverged)")
 
 
 def no_omega_reason(choice, torque_factor: float) -> str:
