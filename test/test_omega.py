@@ -62,7 +62,7 @@ def test_the_written_gains_load_into_the_controller_node(capsys, tmp_path):
 
 
 @pytest.mark.parametrize('arguments, problem', [
-    (['--max-error', '0'], 'permitted errors must be finite and positive'),
+    (['--max-error', '0'], '--max-error for joint1: 0 deg, not within (0, 5729.58] deg'),
     (['--max-error', '0.5', '--torque-factor', '-1'], 'torque factor'),
     (['--max-error', '0.5', '--mass-error', '0', '0.1', '0.1', '--mass-scale', '1', '1', '1'], 'not both'),
 ])
