@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -73,9 +74,25 @@ def stop_on_signals():
     global _requested, _deferred
     _requested = _deferred = None
     previous = {stop: signal.signal(stop, _raise) for stop in STOP_SIGNALS}
+    previous_hook = sys.unraisablehook
+
+    def unraisable(hook_arguments) -> None:
+        # A stop raised inside a callback from C (numba's compiler calls back into Python) cannot leave it and is
+        # printed as "Exception ignored"; it is kept in _requested and raised again below or at check_stop.
+        if not isinstance(hook_arguments.exc_value, Interrupted):
+            previous_hook(hook_arguments)
+
+    sys.unraisablehook = unraisable
     try:
         yield
+    except Exception as error:
+        # An error after a stop was asked for is the stop's doing: a raise that a library turned into its own
+        # error (numba's "no compiled object yet" once its compiler's callback was cut short).
+        if _requested is None:
+            raise
+        raise Interrupted(_requested) from error
     finally:
         for stop, handler in previous.items():
             signal.signal(stop, handler)
+        sys.unraisablehook = previous_hook
         _requested = _deferred = None

@@ -38,3 +38,25 @@ def test_outside_the_block_the_old_handlers_are_back():
         assert signal.getsignal(signal.SIGINT) is not before
     assert signal.getsignal(signal.SIGINT) is before
     check_stop()  # no stop pending once the block is left
+
+
+def test_a_stop_a_library_turned_into_its_own_error_ends_as_the_stop_and_is_not_printed(capsys):
+    """SIGTERM while numba compiled: the raise landed in a ctypes callback (printed as "Exception ignored") and numba
+    then failed with RuntimeError('no compiled object yet'), a traceback."""
+    def library_call():
+        try:
+            StoppedWhileCollected()  # the stop lands where it cannot be raised
+        finally:
+            raise RuntimeError('no compiled object yet')  # and the library fails on what it left undone
+
+    with pytest.raises(Interrupted) as stopped:
+        with stop_on_signals():
+            library_call()
+    assert stopped.value.exit_code == 143 and isinstance(stopped.value.__cause__, RuntimeError)
+    assert 'Exception ignored' not in capsys.readouterr().err
+
+
+def test_an_error_without_a_stop_is_left_as_it_is():
+    with pytest.raises(RuntimeError, match='a bug'):
+        with stop_on_signals():
+            raise RuntimeError('a bug')
