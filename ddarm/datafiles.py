@@ -51,6 +51,25 @@ class DataFileError(DdarmError, ValueError):
     metadata.yaml that rosbag2 would never write."""
 
 
+def unreachable(path: Path | str) -> OSError | None:
+    """Why the OS cannot reach the input `path` (os.stat's OSError), or None when it can.
+
+    Path.exists() is False for a symbolic-link loop (ELOOP), a folder that may not be searched (EACCES), a name
+    too long (ENAMETOOLONG) or a file where a folder should be (ENOTDIR), as for nothing there: a check of an
+    input that says "no such file" must say it for ENOENT alone (`is_missing`), and give any other refusal the
+    OS's own reason (its strerror: 'Too many levels of symbolic links')."""
+    try:
+        os.stat(path)
+    except OSError as error:
+        return error
+    return None
+
+
+def is_missing(error: OSError | None) -> bool:
+    """Whether `error` (unreachable's) says that nothing is there: ENOENT, no other reason."""
+    return isinstance(error, FileNotFoundError)
+
+
 def read_data_file(path: Path | str, limit: int = MAX_FILE_BYTES) -> str:
     """The text of the data file at `path`, read only once it is known to be a regular file of at most `limit`
     bytes (a FIFO or a device would block or never end); OSError for what the OS refuses."""

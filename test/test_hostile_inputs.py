@@ -1,6 +1,7 @@
 """Hostile data files, bags and cluster addresses (issue 23): every input has a stated bound, refused at once
 beyond it with a one-line error naming the file and the field, and no refusal writes out a whole value."""
 
+import errno
 import importlib.util
 import os
 import re
@@ -513,3 +514,47 @@ def test_a_bag_whose_episode_configuration_is_not_ddarms_is_refused_naming_the_f
         score_bag(bag)
     assert main(['score', str(bag)]) == 2
     assert 'not the configuration ddarm records' in capsys.readouterr().err
+
+
+@pytest.fixture
+def loop(tmp_path):
+    """tmp_path/loop1, a symbolic link to tmp_path/loop2, which links back to it: os.stat says ELOOP."""
+    os.symlink('loop2', tmp_path / 'loop1')
+    os.symlink('loop1', tmp_path / 'loop2')
+    return tmp_path / 'loop1'
+
+
+def one_line_refusal(capsys, arguments: list) -> str:
+    assert main([str(argument) for argument in arguments]) == 2
+    out, err = capsys.readouterr()
+    assert err.count('\n') == 1 and 'Traceback' not in err, (out, err)
+    return err
+
+
+LOOP_REASON = os.strerror(errno.ELOOP)  # 'Too many levels of symbolic links'
+
+
+@pytest.mark.parametrize('option', ['--urdf', '--model-urdf'])
+def test_a_urdf_in_a_symlink_loop_is_refused_as_a_loop_not_as_missing(capsys, tmp_path, loop, option):
+    episode = ['episode', '--controller', 'computed_torque', '--omega', '15']
+    err = one_line_refusal(capsys, [*episode, option, loop])
+    assert f'URDF {loop} cannot be read: {LOOP_REASON}' in err and 'does not exist' not in err, err
+    err = one_line_refusal(capsys, [*episode, option, tmp_path / 'absent.urdf'])  # ENOENT alone is 'does not exist'
+    assert f'URDF {tmp_path / "absent.urdf"} does not exist' in err, err
+
+
+def test_a_bag_in_a_symlink_loop_is_refused_as_a_loop_by_score_and_motion(capsys, tmp_path, loop):
+    err = one_line_refusal(capsys, ['score', loop])
+    assert err == f'ddarm score: {loop}: {LOOP_REASON}\n', err
+    err = one_line_refusal(capsys, ['motion', loop, '--out', tmp_path / 'motion.yaml'])
+    assert err == f'ddarm motion: {loop}: {LOOP_REASON}\n', err
+    # A bag whose metadata.yaml is the loop: named with its reason, not as a bag without metadata.
+    (tmp_path / 'bag').mkdir()
+    os.symlink(loop, tmp_path / 'bag' / 'metadata.yaml')
+    err = one_line_refusal(capsys, ['score', tmp_path / 'bag'])
+    assert err == f'ddarm score: {tmp_path / "bag"}: metadata.yaml: {LOOP_REASON}\n', err
+    err = one_line_refusal(capsys, ['motion', tmp_path / 'bag', '--out', tmp_path / 'motion.yaml'])
+    assert err == f'ddarm motion: {tmp_path / "bag"}: metadata.yaml: {LOOP_REASON}\n', err
+    err = one_line_refusal(capsys, ['score', tmp_path / 'absent'])  # ENOENT alone is 'no such bag'
+    assert err == f'ddarm score: {tmp_path / "absent"}: no such bag\n', err
+    assert not (tmp_path / 'motion.yaml').exists()

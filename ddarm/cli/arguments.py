@@ -131,8 +131,41 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     return dataclasses.replace(spec, kp=kp, kv=kv)
 
 
+def output_path(text: str) -> str:
+    """An argparse type: a path ddarm writes at (its folder may exist): not empty, which would be the current folder
+    or a silent default. Its parts that ddarm creates are checked where it is written (checked_output_path)."""
+    if not text:
+        raise argparse.ArgumentTypeError('an empty path: give the path to write')
+    return text
+
+
+def new_output_path(text: str) -> str:
+    """An argparse type: the path of a new file or folder ddarm makes, whose last part is a name it creates: not
+    empty, and a name (ddarm.recording.bags.output_name_problem: no control character)."""
+    from ddarm.recording.bags import output_name_problem
+
+    name = Path(output_path(text)).name  # '' for / or .: refused where it is written, as a path that exists
+    problem = output_name_problem(name) if name else None
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def new_output_name(text: str) -> str:
+    """An argparse type: the name of a file or folder ddarm makes (output_name_problem: not empty, no control
+    character)."""
+    from ddarm.recording.bags import output_name_problem
+
+    problem = output_name_problem(text)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
 def add_output_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--runs', default='runs', help='folder of run folders (runs)')
-    parser.add_argument('--run', metavar='NAME', help='run folder name (default: <command>-<law>-<time>)')
-    parser.add_argument('--out', metavar='FILE.yaml', help='also write the controller YAML here (new file)')
+    parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
+    parser.add_argument('--run', metavar='NAME', type=new_output_name,
+                        help='run folder name (default: <command>-<law>-<time>)')
+    parser.add_argument('--out', metavar='FILE.yaml', type=new_output_path,
+                        help='also write the controller YAML here (new file)')
     parser.add_argument('--json', action='store_true', help='print one JSON object')

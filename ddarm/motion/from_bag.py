@@ -22,7 +22,7 @@ import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from ddarm.datafiles import MAX_TOPIC_MESSAGES, DataFileError, bag_metadata_text
+from ddarm.datafiles import MAX_TOPIC_MESSAGES, DataFileError, bag_metadata_text, is_missing, unreachable
 from ddarm.motion.files import MAX_JOINTS, MAX_POINTS, DataLoader, parse_motion, shown
 from ddarm.motion.programmed import MotionError
 
@@ -64,6 +64,11 @@ def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequ
                               f'first message, got {bound!r}')
     if start is not None and end is not None and not start <= end:
         raise MotionError(f'{bag}: the window start {start!r} s is after its end {end!r} s')
+    # A symlink loop, a folder it may not search: the OS's own reason, not that no metadata.yaml is there.
+    for where, failure in ((f'{bag}', unreachable(bag)),
+                           (f'{bag}: metadata.yaml', unreachable(bag / 'metadata.yaml') if bag.is_dir() else None)):
+        if failure is not None and not is_missing(failure):
+            raise MotionError(f'{where}: {failure.strerror or failure}')
     if not (bag / 'metadata.yaml').is_file():
         raise MotionError(f'{bag}: no metadata.yaml in it: not a rosbag2 bag, or a recording that never closed')
     try:

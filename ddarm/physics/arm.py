@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from ddarm.datafiles import MAX_FILE_BYTES, DataFileError, read_data_bytes
+from ddarm.datafiles import MAX_FILE_BYTES, DataFileError, is_missing, read_data_bytes, unreachable
 from ddarm.errors import DdarmError
 
 URDF_NAME = 'ddarm.urdf'
@@ -489,10 +489,13 @@ def _locked_positions(path: Path, joints: dict[str, UrdfJoint], movable: list[st
 
 
 def _check_readable(path: Path) -> None:
+    failure = unreachable(path)  # a symlink loop, a folder it may not search: the OS's reason, not 'does not exist'
+    if is_missing(failure):
+        raise ModelError(f'URDF {path} does not exist')
+    if failure is not None:
+        raise ModelError(f'URDF {path} cannot be read: {failure.strerror or failure}')
     if path.is_dir():
         raise ModelError(f'URDF {path} is a directory, not a URDF file')
-    if not path.exists():
-        raise ModelError(f'URDF {path} does not exist')
     if not path.is_file():  # a FIFO or a device would block the read, or never end it
         raise ModelError(f'URDF {path} cannot be read: it is not a regular file (a FIFO, a socket or a device)')
 

@@ -10,8 +10,11 @@ evidence that is missing, duplicated, or from more than one publisher.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
+import stat
 import types
+import unicodedata
 import typing
 import weakref
 from collections import defaultdict
@@ -34,8 +37,10 @@ from ddarm.episodes.indices import IndicesError
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.interrupts import Interrupted, critical_section
-from ddarm.datafiles import MAX_TOPIC_MESSAGES, SAFE_LOADER, DataFileError, bag_metadata_text
+from ddarm.datafiles import (MAX_TOPIC_MESSAGES, SAFE_LOADER, DataFileError, bag_metadata_text, is_missing,
+                             unreachable)
 from ddarm.motion.files import shown
+from ddarm.reporting.text import visible
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_TOPIC = '/ddarm/episode'
@@ -133,8 +138,46 @@ def _reason(error: Exception) -> str:
     return str(error) or type(error).__name__
 
 
+def output_name_problem(name: str) -> str | None:
+    """What keeps `name` from naming a file or folder ddarm makes, or None: it is empty, or it holds a control
+    character (Unicode category Cc: a newline, a tab, ESC, DEL), which would break or rewrite every line, listing
+    and report that names it. The one rule for every output's own name (the --run name, the last part of --out,
+    --bag, a new --runs folder): checked_output_path applies it to each part of a path that ddarm creates."""
+    if not name:
+        return 'the name is empty'
+    controls = sorted({character for character in name if unicodedata.category(character) == 'Cc'})
+    if controls:
+        codes = ', '.join(f'U+{ord(character):04X}' for character in controls)
+        plural = 's' if len(controls) > 1 else ''
+        return f'the name {visible(name, pictures=False)} holds the control character{plural} {codes}; give a name ' \
+               'without control characters'
+    return None
+
+
+def folder_problem(folder: Path | str) -> str | None:
+    """Why nothing new can be made in `folder`, or None when it is a folder: 'F is a file, not a folder' (F the
+    folder or a file on the way to it), 'the folder F does not exist' (ENOENT alone), or what the OS says of it
+    (a symlink loop, a folder it may not search): the one wording of every output location's folder."""
+    folder = Path(folder)
+    failure = unreachable(folder)
+    if isinstance(failure, NotADirectoryError):  # a file on the way: name it, not the folder behind it
+        folder = next(parent for parent in folder.parents if unreachable(parent) is None)
+    elif is_missing(failure):
+        return f'the folder {folder} does not exist'
+    elif failure is not None:
+        return f'the folder {folder} cannot be reached: {failure.strerror or failure}'
+    mode = os.stat(folder).st_mode
+    if stat.S_ISDIR(mode):
+        return None
+    return f'{folder} is a file, not a folder' if stat.S_ISREG(mode) else f'{folder} is not a folder'
+
+
 def checked_output_path(path: Path | str) -> Path:
-    """Refuse a bag path that climbs with '..', goes through a symlink, or already exists (FAULTS.md 19)."""
+    """Refuse an output path that is empty, climbs with '..', goes through a symlink, already exists, goes through
+    a file, or whose parts that ddarm creates (those not there yet) are no names (output_name_problem) (FAULTS.md
+    19). Its folder may be new (made with it); checked_output_location also wants the folder there."""
+    if str(path) == '':  # Path('') is '.', the current folder
+        raise BagError('the output path is empty')
     path = Path(path)
     if '..' in path.parts:
         raise BagError(f'{path}: ".." is not allowed in an output path')
@@ -146,6 +189,18 @@ def checked_output_path(path: Path | str) -> Path:
     ancestor = next(parent for parent in path.parents if parent.exists())
     if not ancestor.is_dir():
         raise BagError(f'{path}: {ancestor} is a file, not a folder')
+    for created in path.relative_to(ancestor).parts:
+        if (problem := output_name_problem(created)) is not None:
+            raise BagError(f'{visible(path, pictures=False)}: {problem}')
+    return path
+
+
+def checked_output_location(path: Path | str) -> Path:
+    """checked_output_path, and the folder it goes in is there (folder_problem): what a new output the user names
+    (a file or a folder) is checked with before any work, so that a mistyped path grows no tree."""
+    path = checked_output_path(path)
+    if (problem := folder_problem(path.absolute().parent)) is not None:
+        raise BagError(f'{path}: {problem}')
     return path
 
 
@@ -348,8 +403,14 @@ def _in_order(names, joints: list, topic: str) -> np.ndarray | slice:
 def read_episode_bag(path: Path | str, require_complete: bool = True) -> BagEpisode:
     """Read and check an episode bag; BagError names whatever makes it unusable."""
     path = Path(path)
-    if not path.exists():
+    failure = unreachable(path)  # a symlink loop, a folder it may not search: the OS's reason, not 'no such bag'
+    if is_missing(failure):
         raise BagError(f'{path}: no such bag')
+    if failure is not None:
+        raise BagError(f'{path}: {failure.strerror or failure}')
+    failure = unreachable(path / 'metadata.yaml') if path.is_dir() else None
+    if failure is not None and not is_missing(failure):
+        raise BagError(f'{path}: metadata.yaml: {failure.strerror or failure}')
     if not (path / 'metadata.yaml').is_file():
         raise BagError(f'{path}: no metadata.yaml: not a bag, or a recording that never closed (incomplete)')
     try:

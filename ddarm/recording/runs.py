@@ -15,7 +15,8 @@ import yaml
 
 from ddarm.episodes.indices import INDICES
 from ddarm.errors import DdarmError
-from ddarm.recording.bags import BagError, checked_output_path, child_path
+from ddarm.datafiles import is_missing, unreachable
+from ddarm.recording.bags import BagError, checked_output_location, checked_output_path, child_path
 from ddarm.interrupts import Interrupted, critical_section
 from ddarm.strict_json import json_text
 
@@ -119,10 +120,13 @@ class RunFolder:
         root = Path(root)
         if root.is_symlink():
             raise BagError(f'{root} is a symlink; refusing to write through it')
-        if root.exists() and not root.is_dir():
+        failure = unreachable(root)
+        if is_missing(failure) or isinstance(failure, NotADirectoryError):  # a new folder, checked as every output
+            return checked_output_location(root)
+        if failure is not None:  # a symlink loop on the way, a folder it may not search: the OS's reason
+            raise BagError(f'{root}: {failure.strerror or failure}')
+        if not root.is_dir():
             raise BagError(f'{root} is not a folder: it cannot hold run folders')
-        if not root.exists() and not root.absolute().parent.is_dir():
-            raise BagError(f'{root}: the folder {root.absolute().parent} does not exist')
         return root
 
     @classmethod

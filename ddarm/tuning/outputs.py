@@ -12,7 +12,7 @@ import numpy as np
 
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, arm_joints
-from ddarm.recording.bags import BagError, checked_output_path
+from ddarm.recording.bags import BagError, checked_output_location
 from ddarm.recording.runs import RunFolder, controller_yaml, write_new_text
 from ddarm.tuning.report import write_tuning_report
 from ddarm.tuning.robust import describe_scenario
@@ -22,12 +22,14 @@ AGREEMENT = 1e-9
 
 
 def check_outputs(out: str | None, runs: str, run: str | None) -> None:
-    """Refuse an `out` YAML or run folder that cannot be written as asked, before any search or episode."""
-    if out:
-        path = checked_output_path(out)
-        if not path.parent.is_dir():
-            raise BagError(f'--out {path}: the folder {path.parent} does not exist')
-    if run:
+    """Refuse an `out` YAML or run folder that cannot be written as asked, before any search or episode: every
+    value given is checked, an empty one too (None: not given)."""
+    if out is not None:
+        try:
+            checked_output_location(out)
+        except BagError as error:
+            raise BagError(f'--out {error}' if out else '--out is empty: give the file to write') from error
+    if run is not None:
         RunFolder.checked_path(run, Path(runs))
     else:
         RunFolder.checked_root(Path(runs))
