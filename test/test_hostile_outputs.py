@@ -328,9 +328,6 @@ def test_a_runs_folder_through_a_file_is_refused_as_through_a_file_not_as_missin
     assert_nothing_made(tmp_path)
 
 
-@pytest.mark.xfail(strict=True, reason="ddarm/cli/campaign.py and ddarm/cli/pareto.py test their folder with "
-                                       "is_dir() themselves, before the shared check (folder_problem), and say "
-                                       "'does not exist'")
 def test_a_campaign_or_pareto_folder_through_a_file_is_refused_as_through_a_file(capsys, tmp_path, a_file):
     campaign = tmp_path / 'campaign.yaml'
     campaign.write_text('index: I\nlaws: [computed_torque]\nbudget: 200\n')

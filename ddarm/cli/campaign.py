@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from ddarm.cli.output import print_json
 from ddarm.cli.reproduce import job_count
-from ddarm.recording.bags import BagError
+from ddarm.recording.bags import BagError, checked_output_location
 from ddarm.reporting.progress import Progress
 
 
@@ -39,10 +39,13 @@ def command_campaign(args: argparse.Namespace) -> int:
     from ddarm.tuning.outputs import check_outputs
 
     campaign = load_campaign(args.file)  # every job checked: nothing is searched before the file is right
-    out = Path(args.out) if args.out else None
+    out = None
+    if args.out is not None:  # the run folder is new, the folder it goes in is not
+        try:
+            out = checked_output_location(args.out)
+        except BagError as error:
+            raise BagError(f'--out {error}') from error
     runs, name = (str(out.parent), out.name) if out else ('runs', None)
-    if out and not out.absolute().parent.is_dir():  # the run folder is new, the folder it goes in is not
-        raise BagError(f'--out {out}: the folder {out.absolute().parent} does not exist')
     check_outputs(None, runs, name)
     for warning in campaign.warnings:
         print(f'ddarm campaign: WARNING: {warning}', file=sys.stderr)

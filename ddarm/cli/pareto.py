@@ -14,7 +14,7 @@ from ddarm.cli.arguments import add_episode_arguments, episode_spec
 from ddarm.cli.output import format_vector, print_json
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.spec import arm_joints, check_episode
-from ddarm.recording.bags import BagError, checked_output_path
+from ddarm.recording.bags import BagError, checked_output_path, folder_problem
 from ddarm.reporting.progress import Progress
 from ddarm.tuning.methods import (DEFAULT_BUDGET, DEFAULT_METHOD, DEFAULT_POINTS, DEFAULT_POPULATION,
                                   DEFAULT_TUNE_BUDGET, METHODS, ParetoError)
@@ -33,8 +33,8 @@ def _checked_yaml_dir(text: str | None) -> Path | None:
         raise ParetoError(f'--yaml-dir {path}: a file, not a folder')
     if path.is_dir() and any(path.iterdir()):
         raise ParetoError(f'--yaml-dir {path}: the folder exists and is not empty; give a new or empty one')
-    if not path.exists() and not path.absolute().parent.is_dir():
-        raise ParetoError(f'--yaml-dir {path}: the folder {path.absolute().parent} does not exist')
+    if not path.exists() and (problem := folder_problem(path.absolute().parent)) is not None:
+        raise ParetoError(f'--yaml-dir {path}: {problem}')
     try:  # as every output: no '..' in it and no symlink on the way (each point's file is new, 'x' when written)
         checked_output_path(path / 'point-00.yaml')
     except BagError as error:
