@@ -140,6 +140,44 @@ def test_a_node_name_discovery_keeps_without_any_endpoint_is_no_node_on_the_grap
             rclpy.try_shutdown(context=context)
 
 
+def test_a_request_that_may_be_repeated_is_sent_again_until_a_reply_comes(monkeypatch):
+    """A service drops its reply if the client's reader has not matched yet: a controller once never answered its
+    parameters on a busy machine, and the episode timed out."""
+    import rclpy
+    from rclpy.task import Future
+
+    import ddarm.ros.driver
+    from ddarm.ros.driver import GraphDriver, GraphEpisodeError
+    from ddarm.ros.executors import node_executor
+    from ddarm.ros.session import session_namespace
+
+    monkeypatch.setattr(ddarm.ros.driver, 'RESEND_AFTER', 0.2)
+    context = rclpy.Context()
+    rclpy.init(args=[], context=context)
+    driver = GraphDriver(namespace=session_namespace(), context=context)
+    executor = node_executor(context)
+    executor.add_node(driver)
+    sent = []
+
+    def send():  # the first reply is lost; the second comes
+        sent.append(Future())
+        if len(sent) == 2:
+            sent[-1].set_result('the reply')
+        return sent[-1]
+
+    try:
+        assert driver._answer(executor, send, time.monotonic() + 30, 'a reply', lambda: None) == 'the reply'
+        assert len(sent) == 2
+        sent.clear()
+        with pytest.raises(GraphEpisodeError, match='timed out waiting for a reply'):
+            driver._answer(executor, send, time.monotonic() + 1, 'a reply', lambda: None, again=False)
+        assert len(sent) == 1
+    finally:
+        executor.shutdown()
+        driver.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
 def test_a_killed_node_of_a_session_is_forgotten_within_its_short_lease_and_the_next_law_runs(tmp_path):
     import os
     import signal

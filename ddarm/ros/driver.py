@@ -5,6 +5,7 @@ bag) and scores what it heard. The node processes it drives are started by `ddar
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -68,6 +69,9 @@ WATCH_PERIOD = 0.01
 UNWRITTEN_LIMIT = 256
 # Who reads the controller's commands in an episode: the plant and this driver's recorder.
 COMMAND_SUBSCRIBERS = 2
+# A request that may be repeated (parameters read or set, a controller's reset or status) is sent again after this
+# many wall seconds without a reply.
+RESEND_AFTER = 5.0
 # What the graph API says of an endpoint whose node it has not learnt yet.
 UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 # The topics every ROS node publishes by default (rcl's parameter events and log).
@@ -498,12 +502,22 @@ class GraphDriver(Node):
                 next_watch = now + WATCH_PERIOD
             spin_once(executor, 0.05)
 
-    def _trigger(self, executor, client, deadline: float, alive):
-        """Call a std_srvs/Trigger service (a node's reset or status) and wait for its reply."""
+    def _answer(self, executor, send, deadline: float, what: str, alive, again: bool = True):
+        """The reply to the request `send()` sends; with `again` (a request that may be repeated), sent again after
+        each RESEND_AFTER s without a reply, and the last one's reply taken: a server drops its reply when the
+        client's reader has not matched its writer yet, which a busy machine makes likely."""
+        while True:
+            future = send()
+            resend_at = time.monotonic() + RESEND_AFTER if again else math.inf
+            self._spin_until(executor, lambda: future.done() or time.monotonic() >= resend_at, deadline, what, alive)
+            if future.done():
+                return future.result()
+
+    def _trigger(self, executor, client, deadline: float, alive, again: bool = True):
+        """Call a std_srvs/Trigger service (a node's reset or status) and wait for its reply; `again`: as _answer."""
         self._spin_until(executor, client.service_is_ready, deadline, f'service {client.srv_name}', alive)
-        future = client.call_async(Trigger.Request())
-        self._spin_until(executor, future.done, deadline, f'a reply from {client.srv_name}', alive)
-        return future.result()
+        return self._answer(executor, lambda: client.call_async(Trigger.Request()), deadline,
+                            f'a reply from {client.srv_name}', alive, again)
 
     def _read_only(self, executor, node: str, deadline: float, alive) -> dict:
         """The node's READ_ONLY parameters ('' for one it does not declare)."""
@@ -512,9 +526,8 @@ class GraphDriver(Node):
                          alive)
         values = {}
         for name in READ_ONLY:  # one at a time: a node answers a request naming an undeclared one with nothing
-            future = client.get_parameters([name])
-            self._spin_until(executor, future.done, deadline, f'parameter {name} of {self.node_name(node)}', alive)
-            answer = future.result().values
+            answer = self._answer(executor, lambda: client.get_parameters([name]), deadline,
+                                  f'parameter {name} of {self.node_name(node)}', alive).values
             values[name] = parameter_value_to_python(answer[0]) if answer else ''
         return values
 
@@ -531,10 +544,10 @@ class GraphDriver(Node):
         client = self.parameter_clients[node]
         self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
                          alive)
-        future = client.set_parameters(parameters)
-        self._spin_until(executor, future.done, deadline, f'{self.node_name(node)} to take its parameters', alive)
+        answer = self._answer(executor, lambda: client.set_parameters(parameters), deadline,
+                              f'{self.node_name(node)} to take its parameters', alive)
         refused = [f'{parameter.name}: {result.reason}'
-                   for parameter, result in zip(parameters, future.result().results) if not result.successful]
+                   for parameter, result in zip(parameters, answer.results) if not result.successful]
         if refused:
             raise GraphEpisodeError(f'{self.node_name(node)} refused parameters: {refused}')
 
@@ -609,7 +622,8 @@ class GraphDriver(Node):
                              'the recorder to match the publishers of ' + ', '.join(RECORDED_SAMPLE_TOPICS), watching)
             self.recording = Recording(plan.k_max, spec.controller)
             self._record('/' + REFERENCE_TOPIC, reference.header.stamp, serialize_message(reference))
-            reply = self._trigger(executor, self.reset_clients[self.plant_node], deadline, watching)
+            # Never sent twice: the plant's reset starts the episode.
+            reply = self._trigger(executor, self.reset_clients[self.plant_node], deadline, watching, again=False)
             if not reply.success:
                 raise GraphEpisodeError(f'the plant refused to start: {reply.message}')
             self._check_started_with(self.plant_node, plant_parameters, json.loads(reply.message)['parameters'])
