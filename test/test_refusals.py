@@ -2,6 +2,7 @@
 name the option, path or node, and exit 2 without a traceback."""
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -213,3 +214,121 @@ def test_a_node_refusal_naming_a_name_of_megabytes_shows_its_ends_only(tmp_path)
                            str(parameters)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and 'refused to start' in done.stdout and 'characters>…' in done.stdout
     assert len(done.stdout) < 2000, done.stdout[:3000]
+
+
+# Environments ROS 2 cannot start in, each with the words of its refusal: rcl's own were a traceback (RCLError) or Fast
+# DDS's coloured log line, and ROS_DOMAIN_ID=-1 was taken (rcl's strtoul made it domain 0).
+NO_LOG_FOLDER = 'ROS 2 finds no folder for its log files: ROS_LOG_DIR, ROS_HOME and HOME are all unset or empty'
+BAD_ROS_ENVIRONMENTS = {
+    'no HOME': ({'HOME': None}, NO_LOG_FOLDER),
+    'empty HOME': ({'HOME': ''}, NO_LOG_FOLDER),
+    'domain abc': ({'ROS_DOMAIN_ID': 'abc'}, "ROS_DOMAIN_ID is 'abc', and ROS 2 takes a whole number from 0 to 232"),
+    'domain 233': ({'ROS_DOMAIN_ID': '233'}, "ROS_DOMAIN_ID is '233', and ROS 2 takes a whole number from 0 to 232"),
+    'domain 300': ({'ROS_DOMAIN_ID': '300'}, "ROS_DOMAIN_ID is '300', and ROS 2 takes a whole number from 0 to 232"),
+    'domain huge': ({'ROS_DOMAIN_ID': '99999999999'}, "ROS_DOMAIN_ID is '99999999999', and ROS 2 takes a whole"),
+    'domain -1': ({'ROS_DOMAIN_ID': '-1'}, "ROS_DOMAIN_ID is '-1', and ROS 2 takes a whole number from 0 to 232"),
+    'log folder a file': ({'ROS_LOG_DIR': '{tmp}/logs'}, "ROS_LOG_DIR is '{tmp}/logs', and that is not a folder"),
+    'ROS_HOME a file': ({'ROS_HOME': '{tmp}/logs'},
+                        "ROS_HOME is '{tmp}/logs', so ROS 2 writes its log files in {tmp}/logs/log, and that "
+                        '({tmp}/logs) is not a folder'),
+    'log folder unwritable': ({'ROS_LOG_DIR': '{tmp}/locked/ros'},
+                              "ROS_LOG_DIR is '{tmp}/locked/ros', and that folder ({tmp}/locked, where it would be "
+                              'made) cannot be written'),
+}
+
+
+def _bad_ros_environment(tmp_path: Path, case: str) -> tuple[dict, list[str], str, list[str]]:
+    """The environment of `case` (HOME a folder not yet made unless the case sets it, so a log folder rcl made would
+    show), the command prefix that keeps a root test from writing where the user could not, the refusal's words,
+    and the names in tmp_path before the command."""
+    changes, words = BAD_ROS_ENVIRONMENTS[case]
+    (tmp_path / 'logs').write_text('a file, not a folder\n')
+    (tmp_path / 'locked').mkdir(mode=0o555)
+    prefix = []
+    if 'unwritable' in case and os.geteuid() == 0:  # root writes anywhere: run without its capabilities
+        if shutil.which('setpriv') is None:
+            pytest.skip('running as root, and no setpriv to drop the capabilities that write anywhere')
+        prefix = ['setpriv', '--inh-caps=-all', '--bounding-set=-all']
+    environment = {key: value for key, value in os.environ.items() if key not in ('ROS_LOG_DIR', 'ROS_HOME')}
+    environment['HOME'] = str(tmp_path / 'home')
+    for key, value in changes.items():
+        if value is None:
+            environment.pop(key, None)
+        else:
+            environment[key] = value.format(tmp=tmp_path)
+    return environment, prefix, words.format(tmp=tmp_path), sorted(path.name for path in tmp_path.iterdir())
+
+
+EPISODE = ['episode', '--controller', 'computed_torque', '--omega', '15', '--duration', '0.2', '--ros']
+TUNE = ['tune', '--controller', 'pd_gravity', '--index', 'I', '--budget', '5', '--runs', 'runs']
+
+
+@pytest.mark.parametrize('command, case', [
+    pytest.param(command, case, id=f'{command[0]}-{case}') for command, case in
+    [(EPISODE, case) for case in BAD_ROS_ENVIRONMENTS]
+    + [(TUNE, case) for case in ('no HOME', 'domain -1', 'log folder unwritable')]])  # tune: refused before its search
+def test_a_command_that_starts_ros_refuses_an_environment_ros_cannot_start_in_first(tmp_path, command, case):
+    environment, prefix, words, before = _bad_ros_environment(tmp_path, case)
+    done = subprocess.run([*prefix, str(DDARM), *command], cwd=tmp_path, env=environment, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2 and 'Traceback' not in done.stderr + done.stdout, done.stderr
+    assert done.stderr.startswith(f'ddarm {command[0]}: {words}') and done.stderr.count('\n') == 1, done.stderr
+    assert done.stdout == '', 'nothing searched, no episode run'
+    assert sorted(path.name for path in tmp_path.iterdir()) == before, 'nothing made: no log folder, no run'
+
+
+@pytest.mark.parametrize('case', BAD_ROS_ENVIRONMENTS)
+@pytest.mark.parametrize('script', ['computed_torque', 'plant'])
+def test_a_node_refuses_an_environment_ros_cannot_start_in(tmp_path, case, script):
+    environment, prefix, words, before = _bad_ros_environment(tmp_path, case)
+    done = subprocess.run([*prefix, sys.executable, str(ROOT / 'scripts' / script)], cwd=tmp_path, env=environment,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and 'Traceback' not in done.stderr + done.stdout, done.stdout + done.stderr
+    assert done.stdout.startswith(f'{script}: refused to start: {words}') and done.stdout.count('\n') == 1, done.stdout
+    assert done.stderr == '' and sorted(path.name for path in tmp_path.iterdir()) == before
+
+
+@pytest.mark.parametrize('domain_id', [None, '', '0', '232'])
+def test_ros_takes_a_domain_id_unset_empty_or_in_its_range(tmp_path, domain_id):
+    from ddarm.ros.executable import ros_environment_problem
+
+    environment = {'HOME': str(tmp_path)} | ({} if domain_id is None else {'ROS_DOMAIN_ID': domain_id})
+    assert ros_environment_problem([], environment) is None
+
+
+def test_ros_finds_its_log_folder_as_rcl_does(tmp_path):
+    from ddarm.ros.executable import ros_environment_problem
+
+    (tmp_path / 'file').write_text('')
+    assert ros_environment_problem([], {'ROS_HOME': str(tmp_path / 'ros')}) is None  # no HOME needed
+    assert ros_environment_problem([], {'ROS_LOG_DIR': str(tmp_path / 'a' / 'b'), 'HOME': '/'}) is None
+    assert ros_environment_problem([], {'ROS_LOG_DIR': '', 'ROS_HOME': '', 'HOME': str(tmp_path)}) is None
+    assert ros_environment_problem([], {'ROS_LOG_DIR': '~/logs', 'HOME': str(tmp_path)}) is None
+    assert "ROS_LOG_DIR is '~/logs', and ROS 2 reads its ~ from HOME" in ros_environment_problem(
+        [], {'ROS_LOG_DIR': '~/logs', 'ROS_HOME': str(tmp_path)})
+    assert 'is not a folder' in ros_environment_problem([], {'HOME': str(tmp_path / 'file')})
+    # rcl writes no log file with --disable-external-lib-logs among the ROS arguments (the last of it and --enable-).
+    assert ros_environment_problem(['node', '--ros-args', '--disable-external-lib-logs'], {}) is None
+    assert ros_environment_problem(['node', '--ros-args', '--disable-external-lib-logs', '--enable-external-lib-logs'],
+                                   {}) is not None
+    assert ros_environment_problem(['node', '--disable-external-lib-logs'], {}) is not None  # not a ROS argument
+    assert sorted(path.name for path in tmp_path.iterdir()) == ['file'], 'nothing made'
+
+
+def test_a_ros_episode_runs_with_an_explicit_domain_id_and_its_log_folder_from_ros_home(tmp_path):
+    environment = {key: value for key, value in os.environ.items() if key not in ('HOME', 'ROS_LOG_DIR')}
+    environment['ROS_HOME'] = str(tmp_path / 'ros')
+    assert environment['ROS_DOMAIN_ID'].isdigit()  # the test process's own (conftest.py), explicit
+    done = subprocess.run([str(DDARM), 'episode', '--controller', 'computed_torque', '--omega', '15', '--ros',
+                           '--duration', '0.05'], cwd=tmp_path, env=environment, capture_output=True, text=True,
+                          timeout=180)
+    assert done.returncode == 0 and 'I1 (2.5)' in done.stdout, done.stderr
+    assert any((tmp_path / 'ros' / 'log').iterdir()), 'rcl wrote its log files under ROS_HOME'
+
+
+def test_bench_refuses_a_negative_seed_before_any_episode():
+    done = subprocess.run([str(DDARM), 'bench', '--episodes', '20', '--scalar-episodes', '2', '--seed', '-1'],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and 'Traceback' not in done.stderr and done.stdout == '', done.stderr
+    assert done.stderr == ('ddarm bench: error: argument --seed: -1 is not 0 or more (a NumPy seed) '
+                           '(see ddarm bench --help)\n')

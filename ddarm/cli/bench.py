@@ -25,6 +25,17 @@ def _count(name: str):
     return parse
 
 
+def _seed(text: str) -> int:
+    """An argparse type: a NumPy seed, a whole number of 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f'{value} is not 0 or more (a NumPy seed)')
+    return value
+
+
 def command_bench(args: argparse.Namespace) -> int:
     template = reference_case(absolute_path(args.urdf), absolute_path(args.motion))
     figures = run_bench(args.episodes, args.seed, args.scalar_episodes, args.threads, template)
@@ -80,7 +91,7 @@ def add_bench_parser(commands) -> None:
                        help='episodes in the batch (1000)')
     bench.add_argument('--scalar-episodes', type=_count('MAX_BATCH'), default=SCALAR_EPISODES, metavar='M',
                        help=f'of them, how many also run one per call ({SCALAR_EPISODES})')
-    bench.add_argument('--seed', type=int, default=0, help='seed of the gain perturbation (0)')
+    bench.add_argument('--seed', type=_seed, default=0, help='seed of the gain perturbation (0)')
     bench.add_argument('--threads', type=_count('MAX_THREADS'), metavar='T',
                        help='threads of the batch engine (the cores available)')
     bench.add_argument('--urdf', metavar='FILE', help="another arm (default: the paper's); with --motion")

@@ -154,9 +154,10 @@ def _main(argv: list[str]) -> int:
         parser.error(f'unrecognized arguments: {" ".join(ros_arguments)}')
     args.ros_arguments, args.argv = ros_arguments, argv
     if starts_ros(args):
-        from ddarm.ros.executable import non_utf8_argument
+        from ddarm.ros.executable import non_utf8_argument, ros_environment_problem
 
-        if (problem := non_utf8_argument(argv)) is not None:  # before any work, not when ROS starts after it
+        # Before any work, not when ROS starts after it: arguments ROS cannot take, an environment it cannot start in.
+        if (problem := non_utf8_argument(argv) or ros_environment_problem(argv)) is not None:
             print(f'ddarm {args.command}: {problem}', file=sys.stderr)
             return 2
     if getattr(args, 'takes_ros_arguments', False):

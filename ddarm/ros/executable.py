@@ -7,6 +7,8 @@ the tuner node (a sweep with exit codes of its own) share this flow through `run
 
 from __future__ import annotations
 
+import os
+import re
 import sys
 import weakref
 from collections.abc import Callable, Sequence
@@ -43,11 +45,88 @@ def non_utf8_argument(arguments: Sequence[str]) -> str | None:
         try:
             argument.encode('utf-8')
         except UnicodeEncodeError:
-            shown = argument.encode('utf-8', 'surrogateescape').decode('utf-8', 'backslashreplace')
-            if len(shown) > 200:
-                shown = shown[:200] + '…'
-            return (f'the argument {shown} is not UTF-8 text, and ROS 2 (node parameters, parameter files, '
-                    'bags) takes only UTF-8: rename the file or folder')
+            return (f'the argument {_shown(argument)} is not UTF-8 text, and ROS 2 (node parameters, parameter '
+                    'files, bags) takes only UTF-8: rename the file or folder')
+    return None
+
+
+def _shown(text: str) -> str:
+    """`text` as a message shows it: a non-UTF-8 byte as \\xff, and cut after its first 200 characters."""
+    shown = text.encode('utf-8', 'surrogateescape').decode('utf-8', 'backslashreplace')
+    return shown[:200] + '…' if len(shown) > 200 else shown
+
+
+# The ROS domain IDs Fast DDS (the one RMW ddarm ships with) takes with its default ports, as ROS 2 documents:
+# on this machine 232 started a node and 233 failed with Fast DDS's "Calculated port number is too high".
+DOMAIN_ID_RANGE = (0, 232)
+# In decimal digits only: rcl reads it as C's strtoul with base 0 does, and refuses only no number at all; on this
+# machine '010' went to domain 8, '0x10' to 16, '-1' to 0, '1_0' to 1, ' 5' to 5, and 4294967296 was taken.
+_DOMAIN_ID = re.compile(r'0|[1-9][0-9]*')
+
+
+def _log_files_disabled(arguments: Sequence[str]) -> bool:
+    """Whether ROS arguments turn rcl's log files off (--disable-external-lib-logs, the last of it and --enable-)."""
+    within, disabled = False, False
+    for argument in arguments:
+        if argument == '--ros-args':
+            within = True
+        elif argument == '--':
+            within = False
+        elif within and argument in ('--disable-external-lib-logs', '--enable-external-lib-logs'):
+            disabled = argument == '--disable-external-lib-logs'
+    return disabled
+
+
+def _log_folder(environment) -> tuple[str, str, str | None]:
+    """The folder rcl's log files go to, as rcutils_get_logging_directory finds it: (variable, its value, the
+    folder, None if it cannot be found). ROS_LOG_DIR, else ROS_HOME/log, else HOME/.ros/log, the first set and
+    not empty; a leading ~ is HOME, and only HOME (rcutils reads no password database)."""
+    home = environment.get('HOME', '')
+    for variable, below in (('ROS_LOG_DIR', ''), ('ROS_HOME', 'log'), ('HOME', os.path.join('.ros', 'log'))):
+        value = environment.get(variable, '')
+        if value:
+            folder = value
+            if folder.startswith('~'):
+                if not home:
+                    return variable, value, None
+                folder = home + folder[1:]
+            return variable, value, os.path.join(os.path.abspath(folder), below) if below else os.path.abspath(folder)
+    return 'HOME', '', None
+
+
+def ros_environment_problem(arguments: Sequence[str] = (), environment=None) -> str | None:
+    """Why ROS 2 cannot start in this environment (os.environ by default), if it cannot, in words naming the variable.
+
+    rcl's own words for these are a traceback (RCLError) or Fast DDS's coloured log line, after any work before:
+    ROS_DOMAIN_ID must be unset, empty or a whole number in DOMAIN_ID_RANGE, and rcl must find, or be able to make,
+    a folder it can write its log files in (`_log_folder`) unless `arguments` turn the log files off. Nothing is made.
+    """
+    environment = os.environ if environment is None else environment
+    domain_id = environment.get('ROS_DOMAIN_ID', '')
+    low, high = DOMAIN_ID_RANGE
+    if domain_id and not (_DOMAIN_ID.fullmatch(domain_id) and low <= int(domain_id) <= high):
+        return (f"ROS_DOMAIN_ID is '{_shown(domain_id)}', and ROS 2 takes a whole number from {low} to {high} in "
+                'decimal digits, or none (unset or empty: domain 0): set it so or unset it')
+    if _log_files_disabled(arguments):
+        return None
+    variable, value, folder = _log_folder(environment)
+    if folder is None:
+        if value:
+            return (f"{variable} is '{_shown(value)}', and ROS 2 reads its ~ from HOME, which is unset or empty: "
+                    f'give {variable} without ~ or set HOME')
+        return ('ROS 2 finds no folder for its log files: ROS_LOG_DIR, ROS_HOME and HOME are all unset or empty; '
+                'set one of them (ROS_LOG_DIR: the folder itself, ROS_HOME: its log folder, HOME: its .ros/log)')
+    where = f"{variable} is '{_shown(value)}'" + (f', so ROS 2 writes its log files in {_shown(folder)}'
+                                                   if folder != os.path.abspath(value) else '')
+    existing = folder
+    while not os.path.lexists(existing):  # the folder rcl would make, and each missing one above it
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        shown = '' if existing == folder else f' ({_shown(existing)})'
+        return (f'{where}, and that{shown} is not a folder: give {variable} a folder, or where one can be made')
+    if not os.access(existing, os.W_OK | os.X_OK):
+        shown = '' if existing == folder else f' ({_shown(existing)}, where it would be made)'
+        return f'{where}, and that folder{shown} cannot be written: give {variable} a folder you may write in'
     return None
 
 
@@ -84,6 +163,9 @@ def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequen
         print(f'{name}: refused to start: {shortened(error)}', file=out, flush=True)
         return REFUSED
 
+    arguments = list(sys.argv if args is None else args)
+    if (problem := ros_environment_problem(arguments)) is not None:  # before anything starts
+        return refuse(problem)
     if follow:
         from ddarm.ros.lifetime import follow_parent
 
@@ -93,7 +175,6 @@ def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequen
         parameter_files = read_parameter_files(sys.argv if args is None else args)
     except ParameterFileError as error:
         return refuse(error)
-    arguments = list(sys.argv if args is None else args)
     if (problem := non_utf8_argument(arguments)) is not None:
         return refuse(problem)
     try:
