@@ -332,3 +332,18 @@ def test_bench_refuses_a_negative_seed_before_any_episode():
     assert done.returncode == 2 and 'Traceback' not in done.stderr and done.stdout == '', done.stderr
     assert done.stderr == ('ddarm bench: error: argument --seed: -1 is not 0 or more (a NumPy seed) '
                            '(see ddarm bench --help)\n')
+
+
+@pytest.mark.parametrize('arguments, option, problem', [
+    (['tune', '--controller', 'computed_torque', '--index', 'I', '--seed', '-1'], '--seed', '-1 is not 0 or more'),
+    (['pareto', '--controller', 'computed_torque', '--seed', '-1'], '--seed', '-1 is not 0 or more'),
+    (['episode', '--controller', 'computed_torque', '--omega', '15', '--ros', '--bag', ''], '--bag', 'an empty path'),
+    (['episode', '--controller', 'computed_torque', '--omega', '15', '--ros', '--bag', 'a\nb'], '--bag',
+     'control character U+000A'),
+])
+def test_a_seed_or_bag_no_run_takes_is_refused_when_parsed(capsys, tmp_path, arguments, option, problem):
+    with pytest.raises(SystemExit) as refused:
+        main([*arguments, *(['--runs', str(tmp_path)] if arguments[0] == 'tune' else [])])
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and f'error: argument {option}: ' in err and problem in err, err
+    assert not any(tmp_path.iterdir())

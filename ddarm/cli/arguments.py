@@ -38,6 +38,17 @@ def number_within(low: float, high: float, unit: str):
 period_seconds = number_within(*PERIOD_RANGE, 's')
 
 
+def seed(text: str) -> int:
+    """An argparse type: a NumPy seed, a whole number of 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f'{value} is not 0 or more (a NumPy seed)')
+    return value
+
+
 def whole_number(low: int, high: int, unit: str = ''):
     """An argparse type: a whole number in [low, high]; `unit` (e.g. 'samples') says what it counts when refused."""
     noun = f'a whole number of {unit}' if unit else 'a whole number'

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ddarm.cli.arguments import absolute_path, whole_number
+from ddarm.cli.arguments import absolute_path, seed, whole_number
 from ddarm.cli.output import print_json
 from ddarm.episodes.bench import (BATCH_SIZES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES, batch_rates,
                                   reference_case, run_bench)
@@ -23,17 +23,6 @@ def _count(name: str):
             raise argparse.ArgumentTypeError(f'{value} is not in [1, {largest}]')
         return value
     return parse
-
-
-def _seed(text: str) -> int:
-    """An argparse type: a NumPy seed, a whole number of 0 or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'{value} is not 0 or more (a NumPy seed)')
-    return value
 
 
 def command_bench(args: argparse.Namespace) -> int:
@@ -91,7 +80,7 @@ def add_bench_parser(commands) -> None:
                        help='episodes in the batch (1000)')
     bench.add_argument('--scalar-episodes', type=_count('MAX_BATCH'), default=SCALAR_EPISODES, metavar='M',
                        help=f'of them, how many also run one per call ({SCALAR_EPISODES})')
-    bench.add_argument('--seed', type=_seed, default=0, help='seed of the gain perturbation (0)')
+    bench.add_argument('--seed', type=seed, default=0, help='seed of the gain perturbation (0)')
     bench.add_argument('--threads', type=_count('MAX_THREADS'), metavar='T',
                        help='threads of the batch engine (the cores available)')
     bench.add_argument('--urdf', metavar='FILE', help="another arm (default: the paper's); with --motion")

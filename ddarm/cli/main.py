@@ -11,7 +11,7 @@ import argparse
 import re
 import sys
 
-from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite, whole_number
+from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite, new_output_path, seed, whole_number
 from ddarm.cli.episode import command_episode
 from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     episode.add_argument('--spin-margin', type=finite, metavar='S',
                          help='the plant wakes S seconds before each real-time deadline and spins to it '
                               f'(default 0.001; 0: no spin; less than the period, at most {SPIN_MARGIN_RANGE[1]:g})')
-    episode.add_argument('--bag', metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
+    episode.add_argument('--bag', type=new_output_path, metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
     episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     episode.set_defaults(handler=command_episode)
     omega = commands.add_parser('omega', help="section 2's procedure: the ω rule's ω from permitted errors "
@@ -101,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help=f'most episodes evaluated ({DEFAULT_TUNE_BUDGET})')
     tune.add_argument('--omegas', type=finite, nargs='+', default=list(SEARCH_START_OMEGAS),
                       metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
-    tune.add_argument('--seed', type=int, default=0, help='random seed of DE and CMA-ES (0)')
+    tune.add_argument('--seed', type=seed, default=0, help='random seed of DE and CMA-ES (0)')
     tune.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     add_robust_arguments(tune)
     add_output_arguments(tune)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddarm.cli.arguments import add_episode_arguments, episode_spec
+from ddarm.cli.arguments import add_episode_arguments, episode_spec, seed
 from ddarm.cli.output import format_vector, print_json
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.episodes.spec import arm_joints, check_episode
@@ -282,7 +282,7 @@ def add_pareto_parser(commands) -> None:
                         help=f'the single-index searches of the seeds, as ddarm tune --method ({DEFAULT_METHOD})')
     pareto.add_argument('--tune-budget', type=int, default=SEED_BUDGET, metavar='N',
                         help=f'most episodes of each single-index search ({SEED_BUDGET})')
-    pareto.add_argument('--seed', type=int, default=0, help='random seed of the searches (0)')
+    pareto.add_argument('--seed', type=seed, default=0, help='random seed of the searches (0)')
     pareto.add_argument('--points', type=int, default=DEFAULT_POINTS, metavar='N',
                         help=f'most points reported, spread along the front ({DEFAULT_POINTS})')
     pareto.add_argument('--plot', metavar='FILE.png', help='draw the front in the I1-I2 plane here (new file)')
