@@ -65,11 +65,11 @@ class EpisodeSpec:
                 motion = motion_file(self).motion
             except MotionError as error:
                 raise EpisodeError(str(error)) from error
-            duration_field = ('duration' if isinstance(motion, ProgrammedMotion)
+            duration_field = ('its duration' if isinstance(motion, ProgrammedMotion)
                               else "the last point's time_from_start")
             if not motion.duration <= MAX_DURATION:
-                instead = ' (or give the episode its own, --duration)' if duration_field == 'duration' else ''
-                raise EpisodeError(f'motion {motion_source(self)}: its {duration_field} {motion.duration!r} s is '
+                instead = ' (or give the episode its own, --duration)' if duration_field == 'its duration' else ''
+                raise EpisodeError(f'motion {motion_source(self)}: {duration_field} {motion.duration!r} s is '
                                    f'more than {MAX_DURATION:g} s{instead}')
             object.__setattr__(self, 'duration', float(motion.duration))
         period = checked_period(self.period)
