@@ -509,3 +509,12 @@ def test_a_cache_file_larger_than_any_ddarm_writes_is_not_read_and_is_discarded(
     said = capsys.readouterr().err.splitlines()
     assert len(said) == 1 and str(index) in said[0] and f'{dynamics.CACHE_FILE_LIMIT + 1} bytes' in said[0], said
     assert 0 < index.stat().st_size < dynamics.CACHE_FILE_LIMIT
+
+
+@pytest.mark.parametrize('where, why', [('afile', 'is not a folder'),
+                                        ('afile/cache', 'cannot be made a folder: a folder above it is not a folder')])
+def test_a_cache_dir_that_is_a_file_or_inside_one_is_refused_saying_so(tmp_path, monkeypatch, where, why):
+    (tmp_path / 'afile').write_text('x')
+    monkeypatch.setenv(dynamics.CACHE_ENVIRONMENT, str(tmp_path / where))
+    with pytest.raises(ModelError, match=f'the dynamics cache {tmp_path / where} \\(\\$DDARM_CACHE_DIR\\) {why}: '):
+        dynamics.cache_folder()

@@ -195,6 +195,10 @@ def _why_not_private(folder: Path) -> str | None:
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         status = os.lstat(folder)
+    except FileExistsError:
+        return 'is not a folder'
+    except NotADirectoryError:
+        return 'cannot be made a folder: a folder above it is not a folder'
     except OSError as error:
         return f'cannot be made a folder ({error.strerror or error})'
     if not stat.S_ISDIR(status.st_mode):
