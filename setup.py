@@ -49,7 +49,10 @@ setup(
     extras_require={
         # `ddarm campaign --ray ADDRESS`: the searches as tasks on a Ray cluster (a cp311 wheel on the mirror).
         'ray': ['ray==2.60.0'],
-        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0', 'selenium==4.31.0', 'ray==2.60.0'],
+        # `ddarm episode --mjcf`: MuJoCo as the robot.
+        'mujoco': ['mujoco==4.0.1'],
+        'test': ['pytest==9.2.0', 'colcon-common-extensions==0.3.0', 'selenium==4.31.0', 'ray==2.60.0',
+                 'mujoco==4.0.1'],
     },
     zip_safe=True,
     entry_points={

@@ -222,8 +222,10 @@ class ControllerNode(Node):
                                         floating=NODE_PERIOD_RANGE)),
             ('max_sample_gap', 100, descriptor('states more than this many samples ahead of the expected one '
                                                'are refused (sampling state)', integer=(1, 1_000_000))),
-            ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque), N m s/rad")),
-            ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque), N m")),
+            ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque) beyond "
+                                                          "the URDF's <dynamics damping>, N m s/rad")),
+            ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque) beyond "
+                                                          "the URDF's <dynamics friction>, N m")),
             ('sampling', 'state', descriptor('state: one command per stamped state (lockstep with ddarm\'s plant); '
                                              'timer: a timer at 1/period samples the latest /joint_states',
                                              read_only=True)),

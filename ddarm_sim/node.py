@@ -232,8 +232,10 @@ class PlantNode(Node):
                                                          'of every tick)', integer=(0, 100))),
             ('max_samples', 0, descriptor('periods integrated per episode (0: until reset)', integer=(0, 10**6))),
             ('torque_limit', double_array, descriptor('actuator limit |P_i| in N m per joint (unset: none)')),
-            ('viscous_friction', double_array, descriptor('viscous friction N m s/rad per joint (unset: none)')),
-            ('coulomb_friction', double_array, descriptor('Coulomb friction N m per joint (unset: none)')),
+            ('viscous_friction', double_array, descriptor("viscous friction N m s/rad per joint beyond the URDF's "
+                                                          '<dynamics damping> (unset: none)')),
+            ('coulomb_friction', double_array, descriptor("Coulomb friction N m per joint beyond the URDF's "
+                                                          '<dynamics friction> (unset: none)')),
             ('external_torque', double_array, descriptor('constant external joint torques P^z in N m (unset: none)')),
             ('mass_scale', double_array, descriptor('plant link mass / model link mass per link (unset: 1)')),
             ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} '

@@ -88,8 +88,10 @@ def reference_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Ref
     dof = model.dof
     zero = np.zeros(dof)
     external = zero if spec.external_torque is None else np.array(spec.external_torque)
-    viscous = zero if spec.viscous_friction is None else np.array(spec.viscous_friction)
-    coulomb = zero if spec.coulomb_friction is None else np.array(spec.coulomb_friction)
+    # The joints' friction: the URDF's <dynamics damping friction>, as Pinocchio's URDF parser reads them, and the
+    # spec's beyond them.
+    viscous = plant.model.damping + (zero if spec.viscous_friction is None else np.array(spec.viscous_friction))
+    coulomb = plant.model.friction + (zero if spec.coulomb_friction is None else np.array(spec.coulomb_friction))
     kp, kv = np.array(spec.kp), np.array(spec.kv)
 
     nominal = np.array([model.inverse_dynamics(q, v, a) for q, v, a in zip(plan.q_ref, plan.v_ref, plan.a_ref)])

@@ -188,8 +188,9 @@ class _Law:
         zero = np.zeros(chain.dof)
         self.viscous_friction = checked_friction('viscous_friction', viscous_friction, chain.dof)
         self.coulomb_friction = checked_friction('coulomb_friction', coulomb_friction, chain.dof)
-        self._friction = (zero if self.viscous_friction is None else _vector(self.viscous_friction, chain.dof),
-                          zero if self.coulomb_friction is None else _vector(self.coulomb_friction, chain.dof))
+        # F̂: the model URDF's <dynamics> and the friction given beyond it.
+        self._friction = tuple(_vector(values, chain.dof) for values in chain.joint_friction(
+            self.viscous_friction, self.coulomb_friction)) if self.model_friction else (zero, zero)
         column = np.zeros((chain.dof, 1))
         self._command_one = typed_entry(_command_one, self.code, self._inverse_dynamics, column, column, zero, zero,
                                         zero, zero, column, column, *self._friction)

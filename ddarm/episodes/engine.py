@@ -237,9 +237,10 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
     law = LAWS[template.controller]
     gravity_ref = (gravity_feedforward(model_arm(template), plan.q_ref) if law.gravity_feedforward
                    else np.zeros_like(plan.q_ref))
-    # The controller's model of friction F̂ is the plant's (spec §5).
-    compiled = options.compiled(dof)
-    viscous_model, coulomb_model = (compiled[1], compiled[2]) if law.model_friction else (zero, zero)
+    compiled = options.compiled(chain)
+    # The controller's model of friction F̂: its URDF's <dynamics> and the plant's friction beyond its URDF's (spec §5).
+    viscous_model, coulomb_model = (model.joint_friction(template.viscous_friction, template.coulomb_friction)
+                                    if law.model_friction else (zero, zero))
     outcome = (np.zeros(size), np.zeros(size), np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64))
     members = (scale, kp, kv, v0, limit)
     episode = tuple(np.ascontiguousarray(array, dtype=float) for array in (

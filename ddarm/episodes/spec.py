@@ -244,6 +244,7 @@ def plan_motion(spec: EpisodeSpec, motion, times: np.ndarray) -> EpisodePlan:
                            'least that, or none)')
     warnings = motion_limit_warnings(plant, motion, spec)
     q_ref, v_ref, a_ref = sampled_motion(motion, times, motion_source(spec), model.joint_names)
+    warnings += fast_friction_warnings(plant, motion.q0, v_ref, spec)
     try:
         for arm in (plant, model):
             arm.check_inertia(motion.q0, 'the start of the motion')
@@ -340,6 +341,32 @@ def motion_limit_warnings(arm: Arm, motion, spec: EpisodeSpec) -> list[str]:
     return warnings
 
 
+def fast_friction_warnings(plant: Arm, q0: np.ndarray, v_ref: np.ndarray, spec: EpisodeSpec) -> list[str]:
+    """A warning per joint whose friction acts within one sampling period: its viscous damping B stops it in less
+    than Δ (M_ii / B < Δ), or its Coulomb friction C stops its fastest programmed motion in less than Δ (M_ii
+    max |q̇^d| / C < Δ), M_ii the plant's at the start. Such a joint follows its friction, not the sampled law: the
+    law's friction model F̂, computed once per period from a delayed state, can drive it into a limit cycle, and the
+    plant's RK4 steps resolve it coarsely, so that its indices change with --substeps."""
+    viscous = plant.model.damping + (0.0 if spec.viscous_friction is None else np.array(spec.viscous_friction))
+    coulomb = plant.model.friction + (0.0 if spec.coulomb_friction is None else np.array(spec.coulomb_friction))
+    inertia = np.diag(plant.mass_matrix(q0))
+    fastest = np.max(np.abs(v_ref), axis=0)
+    warnings = []
+    for i, name in enumerate(plant.joint_names):
+        fast = []
+        if inertia[i] < viscous[i] * spec.period:
+            fast.append(f'its damping {viscous[i]:.6g} in {inertia[i] / viscous[i]:.3g} s')
+        if inertia[i] * fastest[i] < coulomb[i] * spec.period:
+            fast.append(f'its Coulomb friction {coulomb[i]:.6g} from {fastest[i]:.3g} in '
+                        f'{inertia[i] * fastest[i] / coulomb[i]:.3g} s')
+        if fast:
+            warnings.append(f"joint {name!r} (M_ii = {inertia[i]:.3g} at the start) is stopped by "
+                            f"{' and by '.join(fast)}, within one sampling period Δ = {spec.period:g} s: it follows "
+                            'its friction, not the sampled law, which may drive it into a limit cycle, and its '
+                            'indices change with --substeps')
+    return warnings
+
+
 def gains_from_omega(spec: EpisodeSpec, omega: float) -> tuple[np.ndarray, np.ndarray]:
     """The ω rule of section 2 for the spec's controller; PD + gravity takes m_ii of the model at q_f."""
     if not (np.isfinite(omega) and omega > 0):
@@ -376,25 +403,25 @@ def loop_feedback(spec: EpisodeSpec, model: Arm, q: np.ndarray) -> tuple[np.ndar
     """(F_p, F_v) of the law linearised at rest at q: u = -(F_p x + F_v ẋ) at the measured sample, x = q - q^d.
 
     PD + gravity (2.1): K_p, K_v (its Ĝ(q^d) is a feedforward). Computed torque (2.6): M̂(q) K_p - ∂Ĝ/∂q and
-    M̂(q) K_v - B̂, its model's gravity and viscous friction (the plant's, spec §5) taken at the measured state.
+    M̂(q) K_v - B̂, its model's gravity and viscous friction (its URDF's and the plant's beyond it, spec §5) taken at the
+    measured state.
     """
     kp, kv = np.diag(spec.kp), np.diag(spec.kv)
     if spec.controller == 'pd_gravity':
         return kp, kv
     mass = model.mass_matrix(q)
-    friction = np.diag(spec.viscous_friction) if spec.viscous_friction is not None else np.zeros_like(kv)
+    friction = np.diag(model_chain(spec).joint_friction(spec.viscous_friction)[0])
     return mass @ kp - gravity_stiffness(model, q), mass @ kv - friction
 
 
 def loop_stability_warnings(spec: EpisodeSpec, subject: str = 'the gains') -> list[str]:
     """A warning, naming the joints, when the spec's gains lie beyond the stability boundary of its sampled loop
-    linearised at rest at the motion's start q_0 or goal q_f: the plant's full M(q), ∂G/∂q and viscous friction,
-    the law's feedback (loop_feedback), Δ and the delay. The ω rules' boundary treats each joint alone; on a coupled
-    arm this is where the loop the plant has stops being stable, whatever rule chose the gains."""
+    linearised at rest at the motion's start q_0 or goal q_f: the plant's full M(q) (armature too), ∂G/∂q and viscous
+    friction, the law's feedback (loop_feedback), Δ and the delay. The ω rules' boundary treats each joint alone; on
+    a coupled arm this is where the loop the plant has stops being stable, whatever rule chose the gains."""
     plant, model = plant_arm(spec), model_arm(spec)
     motion = episode_motion(spec)
-    damping = (np.diag(spec.viscous_friction) if spec.viscous_friction is not None
-               else np.zeros((plant.dof, plant.dof)))
+    damping = np.diag(plant_chain(spec).joint_friction(spec.viscous_friction)[0])
     growing, share = [], np.zeros(plant.dof)
     for label, q in (('start q_0', motion.q0), ('goal q_f', motion.qf)):
         try:

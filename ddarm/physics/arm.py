@@ -88,6 +88,9 @@ class UrdfJoint:
     velocity: float
     effort: float
     mimic: tuple[str, float, float] | None  # (mimicked joint, multiplier, offset)
+    damping: float = 0.0  # <dynamics damping>: viscous friction, N m s/rad (N s/m)
+    friction: float = 0.0  # <dynamics friction>: Coulomb friction, N m (N)
+    armature: float = 0.0  # <ddarm:armature value>: reflected rotor inertia, kg m² (kg)
 
 
 @dataclass(frozen=True)
@@ -108,10 +111,13 @@ _NUMBER = re.compile(r'[ \t\n\r\f\v]*[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-
 _MOMENT_TOLERANCE = 1e-5
 # Numbers of a joint urdfdom reads, refusing the whole file over one it cannot (with lines of its own on stderr),
 # that ddarm does not use: (element, attributes, the ones urdfdom requires).
-_UNUSED_JOINT_NUMBERS = (('dynamics', ('damping', 'friction'), ()),
-                         ('safety_controller', ('soft_lower_limit', 'soft_upper_limit', 'k_position', 'k_velocity'),
+_UNUSED_JOINT_NUMBERS = (('safety_controller', ('soft_lower_limit', 'soft_upper_limit', 'k_position', 'k_velocity'),
                           ('k_velocity',)),
                          ('calibration', ('rising', 'falling'), ()))
+# A joint's armature (the rotor's inertia reflected through its gear, added to M(q)'s diagonal), which URDF has no
+# element for: <ddarm:armature value="0.1"/> inside the <joint>, in kg m² (kg for a prismatic joint), with
+# xmlns:ddarm="https://github.com/ddarm/ddarm" on <robot>. urdfdom, MuJoCo's URDF compiler and other readers ignore it.
+ARMATURE_ELEMENT = 'ddarm:armature'
 
 
 # A start tag as well-formed XML writes it, and one of its attributes (name, value in double or in single quotes).
@@ -351,7 +357,23 @@ def _joint(path: Path, element, links) -> UrdfJoint:
         if unused is not None:
             for attribute in attributes:
                 _number(path, f'{where} <{tag}>', unused, attribute, None if attribute in required else 0.0)
-    return UrdfJoint(name, kind, parent, child, origin, axis, lower, upper, velocity, effort, mimic)
+    dynamics, armature = _child(path, where, element, 'dynamics'), _child(path, where, element, ARMATURE_ELEMENT)
+    # Negative friction or inertia would feed the arm energy: no joint has it.
+    damping, friction = (_non_negative(path, f'{where} <dynamics>', dynamics, attribute, MAX_URDF_INERTIA)
+                         for attribute in ('damping', 'friction'))
+    if armature is not None:
+        armature = _non_negative(path, f'{where} <{ARMATURE_ELEMENT}>', armature, 'value', MAX_URDF_INERTIA,
+                                 required=True)
+    return UrdfJoint(name, kind, parent, child, origin, axis, lower, upper, velocity, effort, mimic, damping,
+                     friction, armature or 0.0)
+
+
+def _non_negative(path: Path, where: str, element, name: str, largest: float, required: bool = False) -> float:
+    value = _number(path, where, element, name, None if required else 0.0, largest)
+    if value < 0:
+        raise ModelError(f'URDF {path}: {where}: {name}={element.get(name)!r} is negative: a joint\'s friction and '
+                         f'inertia are not')
+    return value
 
 
 def _check_tree(path: Path, links: list[str], joints: dict[str, UrdfJoint]) -> None:
@@ -501,11 +523,16 @@ def _check_readable(path: Path) -> None:
 
 
 def _read_model(path: Path, description: UrdfDescription) -> pin.Model:
+    """Pinocchio's model of the URDF, with each joint's armature, which urdfdom does not read."""
     try:
         model = pin.buildModelFromXML(description.text)
     except (RuntimeError, ValueError) as error:
         raise ModelError(f'URDF {path} is not a URDF the arm can be built from: {error}') from error
     _check_readers_agree(path, description, model)
+    armature = np.array(model.armature)
+    for joint_id, name in enumerate(list(model.names)[1:], start=1):
+        armature[model.joints[joint_id].idx_v] = description.joints[name].armature
+    model.armature = armature
     return model
 
 
@@ -579,6 +606,10 @@ def _check_readers_agree(path: Path, description: UrdfDescription, model: pin.Mo
         for attribute, ours, theirs in limits:
             if not _same(ours, float(theirs)):
                 raise disagree(f'joint {name!r} <limit {attribute}>', ours, float(theirs))
+        for attribute, ours, theirs in (('damping', joint.damping, model.damping[built_joint.idx_v]),
+                                        ('friction', joint.friction, model.friction[built_joint.idx_v])):
+            if not _same(ours, float(theirs)):
+                raise disagree(f'joint {name!r} <dynamics {attribute}>', ours, float(theirs))
         # Pinocchio returns a one-column Jacobian of a one-dof model as a vector.
         jacobian = np.reshape(pin.getJointJacobian(model, data, joint_id, pin.LOCAL_WORLD_ALIGNED), (6, model.nv))
         motion = jacobian[:, built_joint.idx_v]

@@ -57,7 +57,9 @@ class Chain:
 
     Joint i (0-based) is Pinocchio's joint i + 1; parent -1 is the fixed base. Placements are
     Pinocchio's jointPlacements (child-to-parent rotation and translation at q = 0), inertias
-    are expressed in the joint's frame: mass, centre of mass (lever) and inertia about it.
+    are expressed in the joint's frame: mass, centre of mass (lever) and inertia about it. `damping` and
+    `friction` are each joint's viscous and Coulomb friction (the URDF's <dynamics>), which the dynamics
+    leave to the plant and the law (`joint_friction`).
     """
 
     parent: np.ndarray
@@ -70,10 +72,18 @@ class Chain:
     inertia: np.ndarray
     armature: np.ndarray
     gravity: np.ndarray
+    damping: np.ndarray
+    friction: np.ndarray
 
     @property
     def dof(self) -> int:
         return len(self.parent)
+
+    def joint_friction(self, viscous=None, coulomb=None) -> tuple[np.ndarray, np.ndarray]:
+        """The joints' viscous and Coulomb friction: the URDF's <dynamics damping friction> plus `viscous` and
+        `coulomb` beyond them (None: none), each a checked array of `dof` numbers."""
+        return (self.damping + (0.0 if viscous is None else np.asarray(viscous, dtype=float)),
+                self.friction + (0.0 if coulomb is None else np.asarray(coulomb, dtype=float)))
 
     def arrays(self) -> tuple:
         """Every field, in one fixed order."""
@@ -118,7 +128,8 @@ def chain_from_model(model: pin.Model) -> Chain:
         mass=np.array([inertia.mass for inertia in inertias]),
         lever=np.array([inertia.lever for inertia in inertias]),
         inertia=np.array([inertia.inertia for inertia in inertias]),
-        armature=np.array(model.armature, dtype=float), gravity=np.array(model.gravity.linear, dtype=float))
+        armature=np.array(model.armature, dtype=float), gravity=np.array(model.gravity.linear, dtype=float),
+        damping=np.array(model.damping, dtype=float), friction=np.array(model.friction, dtype=float))
 
 
 def load_chain(urdf: str | None, joints: tuple[str, ...] | None = None,

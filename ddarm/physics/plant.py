@@ -47,7 +47,8 @@ def _optional(name: str, values, dof: int, **rule) -> np.ndarray | None:
 class PlantOptions:
     """Everything about the plant that is not the arm's rigid-body model.
 
-    Per-joint arrays are None for "none": no torque limit, no friction, no external torque.
+    Per-joint arrays are None for "none": no torque limit, no friction beyond the URDF's <dynamics>, no external
+    torque.
     """
 
     period: float = 0.01
@@ -80,12 +81,12 @@ class PlantOptions:
             external_torque=_optional('external_torque', self.external_torque, dof),
             max_position=self.max_position, max_velocity=self.max_velocity)
 
-    def compiled(self, dof: int) -> tuple:
-        """The options as the compiled step reads them: zeros for no friction or external torque."""
-        zero = np.zeros(dof)
-        return (zero if self.external_torque is None else np.ascontiguousarray(self.external_torque, dtype=float),
-                zero if self.viscous_friction is None else np.ascontiguousarray(self.viscous_friction, dtype=float),
-                zero if self.coulomb_friction is None else np.ascontiguousarray(self.coulomb_friction, dtype=float),
+    def compiled(self, chain: Chain) -> tuple:
+        """The options as the compiled step of `chain`'s plant reads them: its joints' friction (the URDF's and
+        these options' beyond it, Chain.joint_friction), zeros for no external torque."""
+        external = np.zeros(chain.dof) if self.external_torque is None else self.external_torque
+        viscous, coulomb = chain.joint_friction(self.viscous_friction, self.coulomb_friction)
+        return (*(np.ascontiguousarray(values, dtype=float) for values in (external, viscous, coulomb)),
                 float(self.period), int(self.substeps), float(self.max_position), float(self.max_velocity))
 
 
@@ -186,7 +187,7 @@ class Plant:
         self.dof = dof
         self.options = options.checked(dof)
         self._forward_dynamics = compiled_dynamics(chain).forward_dynamics
-        self._compiled_options = self.options.compiled(dof)
+        self._compiled_options = self.options.compiled(chain)
         scale = np.ones(dof) if mass_scale is None else checked_mass_scale(mass_scale, dof)
         self._mass_scale = np.ascontiguousarray(scale[:, None])
         limit = self.options.torque_limit
