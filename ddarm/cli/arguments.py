@@ -113,6 +113,41 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
                         help=f'RK4 steps per sampling period (default {DEFAULT_SUBSTEPS})')
 
 
+def joint_pair(text: str) -> tuple[str, str]:
+    """An argparse type: URDF_JOINT=MJCF_JOINT."""
+    ours, equals, theirs = text.partition('=')
+    if not (equals and ours and theirs):
+        raise argparse.ArgumentTypeError(f'{text!r} is not URDF_JOINT=MJCF_JOINT')
+    return ours, theirs
+
+
+def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
+    """--mjcf: a MuJoCo robot as the plant, and --joint-map for its joints' names."""
+    parser.add_argument('--mjcf', metavar='FILE',
+                        help="the plant is this MuJoCo robot (an MJCF file, or a URDF MuJoCo compiles), its joints "
+                             "the motion's; the law runs on --urdf's model (pip install 'ddarm[mujoco]')")
+    parser.add_argument('--joint-map', type=joint_pair, nargs='+', metavar='URDF_JOINT=MJCF_JOINT',
+                        help="the MJCF's name of each joint whose name differs from the URDF's")
+
+
+def robot_joints(args: argparse.Namespace, joint_names: tuple[str, ...]) -> tuple[str, ...] | None:
+    """The MJCF's name of each controlled joint that --joint-map gives (None: no --joint-map)."""
+    if not getattr(args, 'joint_map', None):
+        return None
+    if not getattr(args, 'mjcf', None):
+        raise EpisodeError('--joint-map names the joints of an MJCF robot: give it with --mjcf')
+    mapping = {}
+    for ours, theirs in args.joint_map:
+        if ours in mapping:
+            raise EpisodeError(f'--joint-map maps joint {ours!r} twice')
+        mapping[ours] = theirs
+    unknown = sorted(set(mapping) - set(joint_names))
+    if unknown:
+        raise EpisodeError(f'--joint-map names {unknown}, which are not joints the motion controls '
+                           f'{list(joint_names)}')
+    return tuple(mapping.get(name, name) for name in joint_names)
+
+
 def absolute_path(text: str | None) -> str | None:
     return None if text is None else str(Path(text).expanduser().absolute())
 
@@ -129,6 +164,9 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
         external_torque=args.external_torque, viscous_friction=args.viscous_friction,
         coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps,
         urdf=absolute_path(args.urdf), model_urdf=absolute_path(args.model_urdf), motion=absolute_path(args.motion))
+    if getattr(args, 'mjcf', None) or getattr(args, 'joint_map', None):
+        spec = dataclasses.replace(spec, mjcf=absolute_path(args.mjcf),
+                                   mjcf_joints=robot_joints(args, arm_joints(spec)[0]))
     if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
         kp = kv = (1.0,) * len(arm_joints(spec)[0])
     elif args.omega is not None:

@@ -9,7 +9,7 @@ import time
 from ddarm.cli.arguments import episode_spec
 from ddarm.cli.output import print_json, print_summary
 from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, check_episode, loop_stability_warnings, model_arm
+from ddarm.episodes.spec import EpisodeError, check_episode, episode_robot, loop_stability_warnings, model_arm
 
 
 def episode_scheduling(args: argparse.Namespace):
@@ -37,6 +37,8 @@ def command_episode(args: argparse.Namespace) -> int:
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
     scheduling = episode_scheduling(args)
     spec = episode_spec(args)
+    if spec.mjcf is not None and (args.ros or args.realtime):
+        raise EpisodeError('--mjcf runs in-process only so far: the plant node does not step MuJoCo yet (drop --ros)')
     warnings = list(check_episode(spec).warnings) + loop_stability_warnings(spec)
     started = time.perf_counter()
     if args.ros or args.realtime:
@@ -51,7 +53,8 @@ def command_episode(args: argparse.Namespace) -> int:
     else:
         result = run_episode(spec)
         transport = 'in-process'
-    summary = {**result.summary(), 'locked_joints': dict(model_arm(spec).locked), 'transport': transport,
+    robot = {'robot': episode_robot(spec, result.plan).description()} if spec.mjcf is not None else {}
+    summary = {**result.summary(), **robot, 'locked_joints': dict(model_arm(spec).locked), 'transport': transport,
                'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}
     if args.json:

@@ -11,7 +11,8 @@ import argparse
 import re
 import sys
 
-from ddarm.cli.arguments import add_episode_arguments, add_output_arguments, finite, new_output_path, seed, whole_number
+from ddarm.cli.arguments import (add_episode_arguments, add_output_arguments, add_robot_arguments, finite, new_output_path,
+                                 seed, whole_number)
 from ddarm.cli.episode import command_episode
 from ddarm.cli.nodes import command_controller, command_plant, command_tuner
 from ddarm.cli.omega import command_omega
@@ -71,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
                               f'(default 0.001; 0: no spin; less than the period, at most {SPIN_MARGIN_RANGE[1]:g})')
     episode.add_argument('--bag', type=new_output_path, metavar='DIR', help='record the ROS episode as a rosbag2 bag in DIR (new)')
     episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
+    add_robot_arguments(episode)
     episode.set_defaults(handler=command_episode)
     omega = commands.add_parser('omega', help="section 2's procedure: the ω rule's ω from permitted errors "
                                              'and torques')

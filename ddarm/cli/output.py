@@ -37,6 +37,10 @@ def print_summary(summary: dict) -> None:
     if spec.get('urdf') or spec.get('model_urdf'):
         print(f"  arm {spec.get('urdf') or 'config/ddarm.urdf'}"
               + (f"  model {spec['model_urdf']}" if spec.get('model_urdf') else ''))
+    if summary.get('robot'):
+        robot = summary['robot']
+        print(f"  robot {robot['mjcf']} ({robot['engine']}, {robot['integrator']}, {robot['steps_per_period']} steps "
+              f"of {robot['timestep']:g} s per period, torques through {robot['torque_through']})")
     print(f"  joints {', '.join(summary.get('joint_names', []))}"
           + (f"; locked {', '.join(f'{name} = {value:g}' for name, value in summary['locked_joints'].items())}"
              if summary.get('locked_joints') else ''))

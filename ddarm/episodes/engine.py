@@ -21,11 +21,13 @@ from ddarm.control.laws import CONTROLLERS, LAWS, GainError, checked_gains, grav
 from ddarm.control.laws import warm_up as laws_warm_up
 from ddarm.episodes.indices import accumulate, error_weights, score_series, torque_weights
 from ddarm.episodes.result import Episodes
-from ddarm.episodes.spec import (EpisodeError, EpisodePlan, EpisodeSpec, check_episode, model_arm, model_chain,
-                                  plan_episode, plant_chain, plant_options)
+from ddarm.episodes.spec import (EpisodeError, EpisodePlan, EpisodeSpec, check_episode, episode_robot, model_arm,
+                                  model_chain, plan_episode, plant_chain, plant_options)
+from ddarm.episodes.stepwise import run_stepwise
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, disturbed_start
 from ddarm.physics.dynamics import cached_njit, compiled_dynamics, load_chain
+from ddarm.physics.mujoco_plant import MujocoPlant, RobotError
 from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
 
@@ -198,6 +200,9 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
 
     Raises BatchError (a ValueError) naming the problem, before anything is simulated.
     """
+    if template.mjcf is not None:
+        raise BatchError(f'the batch engine runs ddarm\'s own plant; the MJCF robot {template.mjcf} runs one episode '
+                         'at a time (ddarm episode --mjcf, ddarm validate)')
     plan = plan if plan is not None else plan_episode(template)
     chain, model = plant_chain(template), model_chain(template)
     dof = chain.dof
@@ -269,12 +274,19 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
 
 
 def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
-    """One episode in-process (spec §5), with its series: a batch of one."""
+    """One episode in-process (spec §5), with its series: a batch of one, or on an MJCF robot (spec.mjcf) the
+    stepwise loop against MuJoCo."""
     plan = plan if plan is not None else check_episode(spec)
     try:
         kp, kv = checked_gains(spec.kp, spec.kv, plan.q_ref.shape[1])
     except GainError as error:
         raise EpisodeError(str(error)) from error
+    if spec.mjcf is not None:
+        try:
+            robot = MujocoPlant(episode_robot(spec, plan), plan.q0, plan.v0, plan.torque_limit)
+        except RobotError as error:
+            raise EpisodeError(str(error)) from error
+        return run_stepwise(spec, plan, robot)
     return simulate_batch(spec, [kp], [kv], series=True, plan=plan, threads=1)
 
 

@@ -17,6 +17,7 @@ from ddarm.motion.programmed import (MotionError, ProgrammedMotion, checked_tau,
                                      paper_motion_file, paper_torque_limit, sample_count, sample_times)
 from ddarm.physics.arm import Arm, ModelError, load_arm, movable_joints
 from ddarm.physics.dynamics import Chain, load_chain
+from ddarm.physics.mujoco_plant import Robot, RobotError, load_robot
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
 from ddarm.samples import MAX_SAMPLES, PERIOD_RANGE
 
@@ -26,6 +27,10 @@ MAX_DURATION = 10_000.0
 
 # 'paper': Table 2's 2 x max |P^nom| per joint (spec §7); 'urdf': the plant URDF's <limit effort>.
 TORQUE_LIMITS = ('none', 'paper', 'urdf')
+
+
+# The options of ddarm's own plant, which an MJCF robot does not take.
+ROBOT_EXCLUDED = ('mass_scale', 'external_torque', 'viscous_friction', 'coulomb_friction')
 
 
 class EpisodeError(DdarmError, ValueError):
@@ -57,6 +62,8 @@ class EpisodeSpec:
     urdf: str | None = None  # the plant's arm; None: the paper's (config/ddarm.urdf)
     model_urdf: str | None = None  # the controller's model of it; None: the plant's URDF
     motion: str | None = None  # a motion file (ddarm.motion.files); None: the paper's trajectory `trajectory`
+    mjcf: str | None = None  # the plant is this MuJoCo robot (MJCF, or a URDF MuJoCo compiles); None: ddarm's, on urdf
+    mjcf_joints: tuple[str, ...] | None = None  # the MJCF's name of each controlled joint; None: the same names
 
     def __post_init__(self) -> None:
         duration_field = None  # where T came from, when it is the motion file's
@@ -90,6 +97,17 @@ class EpisodeSpec:
                                f'got {self.torque_limit!r}')
         if self.controller not in CONTROLLERS:
             raise EpisodeError(f'controller must be one of {CONTROLLERS}, got {self.controller!r}')
+        if self.mjcf_joints is not None:
+            object.__setattr__(self, 'mjcf_joints', tuple(self.mjcf_joints))
+            if self.mjcf is None:
+                raise EpisodeError('mjcf_joints (--joint-map) names the joints of an MJCF robot: give its mjcf (--mjcf)')
+        if self.mjcf is not None:
+            # The robot is MuJoCo's: what changes ddarm's own plant does not apply to it.
+            given = [name for name in ROBOT_EXCLUDED if getattr(self, name) is not None]
+            if given:
+                raise EpisodeError(f'{", ".join(given)} change ddarm\'s own plant; with an MJCF robot ({self.mjcf}) '
+                                   "the robot is MuJoCo's: give its friction, torques and masses in the MJCF (the "
+                                   "law's model friction F̂ is the model URDF's <dynamics>)")
         try:
             checked_tau(self.tau, self.duration)
             checked_delay(self.delay)
@@ -461,6 +479,17 @@ def check_episode(spec: EpisodeSpec) -> EpisodePlan:
         plant_options(spec, plan, dof)
         if spec.mass_scale is not None:
             checked_mass_scale(spec.mass_scale, dof)
-    except (GainError, PlantError, ModelError) as error:
+        if spec.mjcf is not None:
+            episode_robot(spec, plan)
+    except (GainError, PlantError, ModelError, RobotError) as error:
         raise EpisodeError(str(error)) from error
     return plan
+
+
+def episode_robot(spec: EpisodeSpec, plan: EpisodePlan) -> Robot:
+    """The MJCF robot `spec` runs on (load_robot, checked against the plan's joints and the period)."""
+    if spec.mjcf_joints is not None and len(spec.mjcf_joints) != len(plan.joint_names):
+        raise RobotError(f'mjcf_joints (--joint-map) names {len(spec.mjcf_joints)} joints; the motion controls '
+                         f'{len(plan.joint_names)}: {list(plan.joint_names)}')
+    joint_map = None if spec.mjcf_joints is None else dict(zip(plan.joint_names, spec.mjcf_joints))
+    return load_robot(spec.mjcf, plan.joint_names, plan.prismatic, spec.period, joint_map)
