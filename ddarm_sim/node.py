@@ -19,10 +19,11 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from ddarm.episodes.spec import read_motion_file
+from ddarm.episodes.spec import ROBOT_EXCLUDED, read_motion_file
 from ddarm.motion.files import motion_of_duration
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
+from ddarm.physics.mujoco_plant import MujocoPlant, Robot, RobotError, at_period, load_robot
 from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
                                  checked_mass_scale, warm_up)
 from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, period_ns, run_ticks
@@ -61,6 +62,7 @@ class PlantSettings:
     q0: np.ndarray
     v0: np.ndarray
     spin_margin: float = DEFAULT_SPIN_MARGIN
+    robot: Robot | None = None  # the MuJoCo robot stepped instead of ddarm's plant, at `period`
 
 
 def _optional_array(values) -> np.ndarray | None:
@@ -126,9 +128,30 @@ def start_state(values: dict, arm: Arm, reduced_by: Reduction | None) -> tuple[n
         raise PlantError(str(error)) from error
 
 
-def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) -> PlantSettings:
-    """Build and check the settings from parameter values; PlantError names the first problem."""
+def plant_robot(values: dict, arm: Arm) -> Robot | None:
+    """The MuJoCo robot of `mjcf` ('' : none) for the arm's joints (named in it by `mjcf_joints`, if given)."""
+    if not values['mjcf']:
+        if values['mjcf_joints']:
+            raise PlantError('mjcf_joints names the joints of an MJCF robot: set mjcf')
+        return None
+    names = list(values['mjcf_joints'] or [])
+    if names and len(names) != arm.dof:
+        raise PlantError(f'mjcf_joints names {len(names)} joints; the arm has {arm.dof}: {arm.joint_names}')
+    return load_robot(values['mjcf'], tuple(arm.joint_names), tuple(bool(x) for x in arm.prismatic),
+                      values['period'], dict(zip(arm.joint_names, names)) if names else None)
+
+
+def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None,
+                   robot: Robot | None = None) -> PlantSettings:
+    """Build and check the settings from parameter values; PlantError names the first problem. `robot`: the
+    node's MuJoCo robot (plant_robot), which the options of ddarm's own plant do not apply to."""
     dof = arm.dof
+    if robot is not None:
+        given = [name for name in ROBOT_EXCLUDED if _optional_array(values[name]) is not None]
+        if given:
+            raise PlantError(f'{", ".join(given)} change ddarm\'s own plant; this plant steps the MJCF robot '
+                             f"{values['mjcf']}: its friction, torques and masses are the MJCF's")
+        robot = at_period(robot, values['period'])
     if values['mode'] not in MODES:
         raise PlantError(f"mode must be one of {MODES}, got {values['mode']!r}")
     if values['spin_margin'] >= values['period']:
@@ -146,7 +169,7 @@ def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None) 
     return PlantSettings(values['mode'], values['period'], values['command_timeout'],
                          values['required_subscribers'], values['required_clock_subscribers'],
                          values['max_samples'], options,
-                         None if mass_scale is None else tuple(mass_scale), q0, v0, values['spin_margin'])
+                         None if mass_scale is None else tuple(mass_scale), q0, v0, values['spin_margin'], robot)
 
 
 class PlantNode(Node):
@@ -171,7 +194,8 @@ class PlantNode(Node):
         self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
         self.state_encoder = JointStateEncoder(self.joints)
         self.chain = chain_from_model(self.arm.model)
-        self.settings = plant_settings(self._parameter_values(), self.arm, self.reduced_by)
+        self.robot = plant_robot(self._parameter_values(), self.arm)
+        self.settings = plant_settings(self._parameter_values(), self.arm, self.reduced_by, self.robot)
         warm_up(self.chain)
         refuse_undeclared_parameters(self, 'plant')
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -222,6 +246,11 @@ class PlantNode(Node):
             ('urdf', '', descriptor('URDF of the arm ("" = the ddarm arm)', read_only=True)),
             ('motion', '', descriptor('a motion file: the controlled joints, locked joints and q^d(0); '
                                       '"" = the paper trajectory of `trajectory`', read_only=True)),
+            ('mjcf', '', descriptor('a MuJoCo robot (MJCF, or a URDF MuJoCo compiles) stepped instead of ddarm\'s '
+                                    'plant, its joints those of the arm ("" = ddarm\'s plant on `urdf`)',
+                                    read_only=True)),
+            ('mjcf_joints', Parameter.Type.STRING_ARRAY, descriptor(
+                "the MJCF's name of each joint of the arm, in its order (unset: the same names)", read_only=True)),
             ('mode', 'lockstep', descriptor('lockstep (deterministic) or realtime (wall clock at 1/period)')),
             ('period', 0.01, descriptor('sampling period Δ in s', floating=NODE_PERIOD_RANGE)),
             ('substeps', DEFAULT_SUBSTEPS, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
@@ -263,8 +292,8 @@ class PlantNode(Node):
     def _check_parameters(self, changes) -> SetParametersResult:
         values = self._parameter_values(changes)
         try:
-            plant_settings(values, self.arm, self.reduced_by)
-        except (PlantError, ModelError, ValueError) as error:
+            plant_settings(values, self.arm, self.reduced_by, self.robot)
+        except (PlantError, ModelError, RobotError, ValueError) as error:
             return SetParametersResult(successful=False, reason=str(error))
         # Last, once the rest is valid: the OS's answer is known only by asking, and a refusal changes nothing.
         refused = self.scheduling.refusal(values)
@@ -295,9 +324,13 @@ class PlantNode(Node):
 
     def _start_episode(self) -> str:
         values = self._parameter_values()
-        self.settings = plant_settings(values, self.arm, self.reduced_by)
-        self.plant = Plant(self.chain, self.settings.options, self.settings.q0, self.settings.v0,
-                           self.settings.mass_scale)
+        self.settings = plant_settings(values, self.arm, self.reduced_by, self.robot)
+        if self.settings.robot is not None:
+            self.plant = MujocoPlant(self.settings.robot, self.settings.q0, self.settings.v0,
+                                     self.settings.options.torque_limit)
+        else:
+            self.plant = Plant(self.chain, self.settings.options, self.settings.q0, self.settings.v0,
+                               self.settings.mass_scale)
         self.latest_command, self.latest_command_sample = None, -1
         self.counters = dict.fromkeys(self.counters, 0)
         self.tick_times, self.lateness = [], []
@@ -312,7 +345,7 @@ class PlantNode(Node):
         try:
             response.message = self.start_episode()
             response.success = True
-        except (PlantError, ModelError) as error:
+        except (PlantError, ModelError, RobotError) as error:
             response.success, response.message = False, f'reset refused: {error}'
             self.get_logger().error(response.message)
         return response
@@ -489,7 +522,7 @@ class PlantNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(PlantNode, 'plant', (PlantError, ModelError, SchedulingError), args)
+    return run_node(PlantNode, 'plant', (PlantError, ModelError, RobotError, SchedulingError), args)
 
 
 if __name__ == '__main__':

@@ -293,3 +293,71 @@ def test_options_of_ddarms_own_plant_and_the_batch_engine_refuse_a_robot(two_lin
         check_episode(dataclasses.replace(spec, mjcf_joints=('shoulder',)))
     assert plan_episode(spec).joint_names == ('shoulder', 'elbow')
     assert math.isfinite(run_episode(spec).I[0])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Through the ROS graph: the plant node steps the robot (its `mjcf` parameter)
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    from ddarm.ros.session import GraphSession
+
+    with GraphSession(tmp_path_factory.mktemp('nodes'), timeout=60.0) as session:
+        yield session
+
+
+def test_the_panda_robot_through_the_graph_is_the_in_process_episode_and_its_bag_scores_the_same(graph, tmp_path):
+    urdf, motion = ARMS / 'panda' / 'panda.urdf', ARMS / 'panda' / 'panda-motion.yaml'
+    mjcf = ROOT / 'config' / 'robots' / 'panda' / 'panda.xml'
+    spec = robot_spec(urdf, motion, mjcf, 'computed_torque', 15.0, duration=0.4, tau=0.05, torque_limit='paper')
+    recorded, scored = graph.record_and_score(spec, tmp_path / 'bag')
+    in_process = run_episode(spec)
+    np.testing.assert_allclose(recorded.scored('q'), in_process.scored('q'), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(recorded.scored('torque'), in_process.scored('torque'), rtol=0, atol=1e-9)
+    for key in ('I1', 'I2', 'I'):
+        assert recorded.indices()[key] == pytest.approx(in_process.indices()[key], rel=1e-9)
+        assert scored[key] == pytest.approx(in_process.indices()[key], rel=1e-9)
+    assert scored['spec']['mjcf'] == str(mjcf)
+
+
+def test_a_robot_of_other_joint_names_through_the_graph_is_the_in_process_episode(graph, two_link, tmp_path):
+    _, urdf, motion = two_link
+    renamed = tmp_path / 'renamed.xml'
+    renamed.write_text(TWO_LINK_MJCF.replace('"shoulder"', '"j1"').replace('"elbow"', '"j2"'))
+    spec = robot_spec(urdf, motion, renamed, 'pd_gravity', 6.0, delay=0, mjcf_joints=('j1', 'j2'))
+    recorded, scored = graph.record_and_score(spec, tmp_path / 'bag')
+    in_process = run_episode(spec)
+    np.testing.assert_allclose(recorded.scored('q'), in_process.scored('q'), rtol=0, atol=1e-9)
+    assert scored['I'] == pytest.approx(in_process.indices()['I'], rel=1e-9)
+
+
+def test_a_plant_node_refuses_a_robot_that_is_not_its_arm_and_options_of_its_own_plant(two_link, tmp_path,
+                                                                                        ros_context):
+    import subprocess
+    import sys
+
+    from rclpy.parameter import Parameter
+
+    from ddarm_sim.node import PlantNode
+
+    mjcf, urdf, motion = two_link
+    wrong = mjcf_with(tmp_path, '<joint name="elbow" type="hinge"', '<joint name="knee" type="hinge"')
+    done = subprocess.run([sys.executable, '-m', 'ddarm_sim.node', '--ros-args', '-p', f'urdf:={urdf}',
+                           '-p', f'motion:={motion}', '-p', f'mjcf:={wrong}'], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert 'plant: refused to start' in done.stdout and "has no joint ['elbow']" in done.stdout
+    node = PlantNode(context=ros_context, parameter_overrides=[
+        Parameter('urdf', value=str(urdf)), Parameter('motion', value=str(motion)), Parameter('mjcf', value=str(mjcf)),
+        Parameter('autostart', value=False)])
+    try:
+        refused = node.set_parameters([Parameter('mass_scale', value=[1.0, 2.0])])[0]
+        assert not refused.successful and "change ddarm's own plant" in refused.reason
+        refused = node.set_parameters([Parameter('period', value=0.0105)])[0]
+        assert not refused.successful and 'not a whole number of its timestep' in refused.reason
+        assert node.set_parameters([Parameter('period', value=0.02)])[0].successful
+        node.start_episode()  # the next episode's settings
+        assert node.plant.robot.steps_per_period == 20 and node.plant.robot.period == 0.02
+    finally:
+        node.destroy_node()

@@ -37,8 +37,6 @@ def command_episode(args: argparse.Namespace) -> int:
         raise EpisodeError('--bag records an episode run through ROS: add --ros (or --realtime)')
     scheduling = episode_scheduling(args)
     spec = episode_spec(args)
-    if spec.mjcf is not None and (args.ros or args.realtime):
-        raise EpisodeError('--mjcf runs in-process only so far: the plant node does not step MuJoCo yet (drop --ros)')
     warnings = list(check_episode(spec).warnings) + loop_stability_warnings(spec)
     started = time.perf_counter()
     if args.ros or args.realtime:

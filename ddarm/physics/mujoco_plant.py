@@ -9,6 +9,7 @@ the ones every other episode runs. `mujoco` is imported here only, when a robot 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass
@@ -198,17 +199,29 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
     for j in ids:
         if actuation[j] is None:
             actuation[j] = Actuation(-1, joint_range=_range(model.jnt_actfrclimited[j], model.jnt_actfrcrange[j]))
+    return Robot(path=path, model=model, joint_names=tuple(joint_names),
+                 qpos_address=np.array([model.jnt_qposadr[j] for j in ids]),
+                 dof_address=np.array([model.jnt_dofadr[j] for j in ids]),
+                 actuation=tuple(actuation[j] for j in ids), steps_per_period=_steps(path, model, period),
+                 period=period, actuators_used=model.nu)
+
+
+def _steps(path: Path, model, period: float) -> int:
+    """The MuJoCo timesteps of one sampling period; RobotError unless it is a whole number of them."""
     timestep = float(model.opt.timestep)
     steps = period / timestep
     whole = round(steps)
     if not (1 <= whole <= MAX_STEPS_PER_PERIOD and abs(steps - whole) <= WHOLE_STEPS_TOLERANCE * whole):
         raise RobotError(f'MJCF {path}: the period {period:g} s is not a whole number of its timestep {timestep:g} s '
                          f'(<option timestep>; {steps:.6g} steps): the held torque would change inside a timestep')
-    return Robot(path=path, model=model, joint_names=tuple(joint_names),
-                 qpos_address=np.array([model.jnt_qposadr[j] for j in ids]),
-                 dof_address=np.array([model.jnt_dofadr[j] for j in ids]),
-                 actuation=tuple(actuation[j] for j in ids), steps_per_period=int(whole), period=period,
-                 actuators_used=model.nu)
+    return int(whole)
+
+
+def at_period(robot: Robot, period: float) -> Robot:
+    """The robot sampled at another period (RobotError unless a whole number of its timesteps)."""
+    if period == robot.period:
+        return robot
+    return dataclasses.replace(robot, steps_per_period=_steps(robot.path, robot.model, period), period=period)
 
 
 class MujocoPlant:

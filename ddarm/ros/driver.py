@@ -29,7 +29,7 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                  SAMPLE_QOS, read_joint_state, reference_msg, sample_index)
 from ddarm.ros.cdr import decode_joint_state, read_stamp
 from ddarm.ros.names import fully_qualified, namespace_arguments
-from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL, READ_ONLY,
+from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL,
                                        SchedulingOptions, arm_parameters, node_parameters, same_read_only,
                                        service_parameters)
 from ddarm.samples import MessageError
@@ -519,13 +519,13 @@ class GraphDriver(Node):
         return self._answer(executor, lambda: client.call_async(Trigger.Request()), deadline,
                             f'a reply from {client.srv_name}', alive, again)
 
-    def _read_only(self, executor, node: str, deadline: float, alive) -> dict:
-        """The node's READ_ONLY parameters ('' for one it does not declare)."""
+    def _read_only(self, executor, node: str, names, deadline: float, alive) -> dict:
+        """The node's read-only parameters `names` ('' for one it does not declare)."""
         client = self.parameter_clients[node]
         self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
                          alive)
         values = {}
-        for name in READ_ONLY:  # one at a time: a node answers a request naming an undeclared one with nothing
+        for name in names:  # one at a time: a node answers a request naming an undeclared one with nothing
             answer = self._answer(executor, lambda: client.get_parameters([name]), deadline,
                                   f'parameter {name} of {self.node_name(node)}', alive).values
             values[name] = parameter_value_to_python(answer[0]) if answer else ''
@@ -533,12 +533,12 @@ class GraphDriver(Node):
 
     def _check_arm(self, executor, node: str, wanted: dict, deadline: float, alive) -> None:
         """The node was started with the episode's URDF and motion file (`arm_parameters`)."""
-        started = self._read_only(executor, node, deadline, alive)
-        differ = [f'{name} is {started[name]!r}, the episode\'s {wanted[name]!r}' for name in READ_ONLY
+        started = self._read_only(executor, node, tuple(wanted), deadline, alive)
+        differ = [f'{name} is {started[name]!r}, the episode\'s {wanted[name]!r}' for name in wanted
                   if not same_read_only(name, started[name], wanted[name])]
         if differ:
             raise GraphEpisodeError(f'{self.node_name(node)} runs another arm than the episode ({"; ".join(differ)}): '
-                                    'start it with the episode\'s read-only parameters urdf and motion')
+                                    f'start it with the episode\'s read-only parameters {", ".join(wanted)}')
 
     def _configure(self, executor, node: str, parameters: list[Parameter], deadline: float, alive) -> None:
         client = self.parameter_clients[node]

@@ -18,6 +18,8 @@ GRAPH_SUBSCRIBERS = 2
 # What a node is built from when it starts (its arm and the joints it controls): given at start, never set
 # through the parameter services. '' is the default: the paper's arm, and its joints (or every movable joint).
 READ_ONLY = ('urdf', 'motion')
+# The plant's too: the robot it steps instead of ddarm's plant ('': none) and the robot's name of each joint.
+ROBOT_READ_ONLY = ('mjcf', 'mjcf_joints')
 
 
 @dataclass(frozen=True)
@@ -45,12 +47,16 @@ def arm_parameters(spec: EpisodeSpec) -> dict[str, dict[str, str]]:
     reduce their URDF to the joints of the one `motion` file, the others locked where it says.
     """
     motion = spec.motion or ''
-    return {'plant': {'urdf': spec.urdf or '', 'motion': motion},
+    return {'plant': {'urdf': spec.urdf or '', 'motion': motion, 'mjcf': spec.mjcf or '',
+                      'mjcf_joints': list(spec.mjcf_joints or [])},
             spec.controller: {'urdf': spec.model_urdf or spec.urdf or '', 'motion': motion}}
 
 
 def same_read_only(name: str, given, wanted: str) -> bool:
-    """Whether a node's `urdf` or `motion` (a path; '' the default) names the same file as `wanted`."""
+    """Whether a node's `urdf`, `motion` or `mjcf` (a path; '' the default) names the same file as `wanted`, or its
+    `mjcf_joints` are the same names."""
+    if name == 'mjcf_joints':  # a string array; unset (None, or '' from a node without it) is none
+        return (given in (None, '') or isinstance(given, list)) and list(given or []) == list(wanted)
     if not isinstance(given, str):
         return False
     if name == 'urdf':
@@ -93,7 +99,8 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
 
 def service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
     """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
-    parameters = [Parameter(name, value=value) for name, value in values.items() if name not in READ_ONLY]
+    parameters = [Parameter(name, value=value) for name, value in values.items()
+                  if name not in READ_ONLY + ROBOT_READ_ONLY]
     parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
     return parameters
 
