@@ -43,31 +43,31 @@ def import_mujoco():
 
 @dataclass(frozen=True)
 class Actuation:
-    """How a torque reaches one joint: a motor actuator (`actuator` >= 0; MuJoCo applies gear · gain · ctrl, ctrl
-    within its ctrlrange, gain · ctrl within its forcerange) or, without one, MuJoCo's applied joint force. Either
-    way the joint's actuatorfrcrange bounds it, as MuJoCo bounds its actuators' force at the joint."""
+    """How a torque reaches each joint, as arrays over the joints: through a motor actuator (`actuator` >= 0;
+    MuJoCo applies gear · gain · ctrl, ctrl within its ctrlrange, gain · ctrl within its forcerange) or, without one
+    (`actuator` -1: gear and gain 1, no control or force range), as MuJoCo's applied joint force. Either way the
+    joint's actuatorfrcrange bounds it, as MuJoCo bounds its actuators' force at the joint. Unbounded: ±inf."""
 
-    actuator: int
-    gear: float = 1.0
-    gain: float = 1.0
-    ctrl_range: tuple[float, float] | None = None
-    force_range: tuple[float, float] | None = None
-    joint_range: tuple[float, float] | None = None
+    actuator: np.ndarray
+    gear: np.ndarray
+    gain: np.ndarray
+    ctrl_range: np.ndarray  # (n, 2)
+    force_range: np.ndarray
+    joint_range: np.ndarray
 
-    def applied(self, torque: float) -> float:
-        """The joint torque MuJoCo applies when asked for `torque`: each of its bounds, in MuJoCo's order."""
-        if self.actuator < 0:
-            return _within(torque, self.joint_range)
-        control = _within(torque / (self.gear * self.gain), self.ctrl_range)
-        return _within(self.gear * _within(self.gain * control, self.force_range), self.joint_range)
+    def applied(self, torque: np.ndarray) -> np.ndarray:
+        """The joint torques MuJoCo applies when asked for `torque`: each of its bounds, in MuJoCo's order."""
+        control = np.clip(torque / (self.gear * self.gain), self.ctrl_range[:, 0], self.ctrl_range[:, 1])
+        force = np.clip(self.gain * control, self.force_range[:, 0], self.force_range[:, 1])
+        return np.clip(self.gear * force, self.joint_range[:, 0], self.joint_range[:, 1])
 
-    def control(self, torque: float) -> float:
-        """The actuator's ctrl that applies `torque` (one `applied` returned: within every bound)."""
+    def control(self, torque: np.ndarray) -> np.ndarray:
+        """The actuators' ctrl that applies `torque` (one `applied` returned: within every bound)."""
         return torque / (self.gear * self.gain)
 
 
-def _within(value: float, bounds: tuple[float, float] | None) -> float:
-    return value if bounds is None else min(max(value, bounds[0]), bounds[1])
+def _range(limited, bounds) -> tuple[float, float]:
+    return (float(bounds[0]), float(bounds[1])) if bool(limited) else (-math.inf, math.inf)
 
 
 @dataclass(frozen=True)
@@ -79,10 +79,9 @@ class Robot:
     joint_names: tuple[str, ...]  # ddarm's order; MuJoCo's joint of each given by its own name through `joint_map`
     qpos_address: np.ndarray
     dof_address: np.ndarray
-    actuation: tuple[Actuation, ...]
+    actuation: Actuation
     steps_per_period: int
     period: float
-    actuators_used: int
 
     @property
     def timestep(self) -> float:
@@ -98,9 +97,16 @@ class Robot:
         mujoco = import_mujoco()
         return {'mjcf': str(self.path), 'engine': f'MuJoCo {mujoco.mj_versionString()}', 'timestep': self.timestep,
                 'integrator': self.integrator, 'steps_per_period': self.steps_per_period,
-                'torque_through': 'motor actuators' if self.actuators_used else 'applied joint forces',
+                'torque_through': self._torque_through(),
                 'joint_map': {name: self.model.joint(int(index)).name for name, index in
                               zip(self.joint_names, self._joint_ids())}}
+
+    def _torque_through(self) -> str:
+        motors = self.actuation.actuator >= 0
+        if motors.all() or not motors.any():
+            return 'motor actuators' if motors.all() else 'applied joint forces'
+        return (f'motor actuators on {[n for n, m in zip(self.joint_names, motors) if m]}, applied joint forces on '
+                f'{[n for n, m in zip(self.joint_names, motors) if not m]}')
 
     def _joint_ids(self) -> list[int]:
         return [int(np.flatnonzero(self.model.jnt_dofadr == address)[0]) for address in self.dof_address]
@@ -122,10 +128,6 @@ def _read_model(path: Path):
     except ValueError as error:  # MuJoCo's parser and compiler say what they refuse
         message = ' '.join(str(error).split())
         raise RobotError(f'MJCF {path} is not a model MuJoCo compiles: {message}') from None
-
-
-def _range(limited, bounds) -> tuple[float, float] | None:
-    return (float(bounds[0]), float(bounds[1])) if bool(limited) else None
 
 
 def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[bool, ...], period: float,
@@ -174,7 +176,7 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
         if kind != ('slide' if prismatic_joint else 'hinge'):
             raise RobotError(f'MJCF {path}: joint {ours!r} is a {kind} joint and {name!r} is '
                              f'{"prismatic" if prismatic_joint else "revolute"} in the URDF')
-    actuation = {j: None for j in ids}
+    motor = {}
     for a in range(model.nu):
         actuator = model.actuator(a)
         name = actuator.name or f'#{a}'
@@ -189,21 +191,26 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
                              'velocity servo, a muscle, activation dynamics or a bias): held at its control it would '
                              'fight the torques ddarm applies. Give the robot motors (<motor joint=… gear="1"/>) or '
                              'no actuators')
-        if actuation[joint] is not None:
+        if joint in motor:
             raise RobotError(f'MJCF {path}: joint {model.joint(joint).name!r} has two actuators; ddarm drives one '
                              'torque per joint')
-        actuation[joint] = Actuation(a, float(model.actuator_gear[a, 0]), float(model.actuator_gainprm[a, 0]),
-                                     _range(model.actuator_ctrllimited[a], model.actuator_ctrlrange[a]),
-                                     _range(model.actuator_forcelimited[a], model.actuator_forcerange[a]),
-                                     _range(model.jnt_actfrclimited[joint], model.jnt_actfrcrange[joint]))
-    for j in ids:
-        if actuation[j] is None:
-            actuation[j] = Actuation(-1, joint_range=_range(model.jnt_actfrclimited[j], model.jnt_actfrcrange[j]))
+        motor[joint] = a
+    actuators = [motor.get(j, -1) for j in ids]
+    unbounded = (-math.inf, math.inf)
+    actuation = Actuation(
+        actuator=np.array(actuators),
+        gear=np.array([model.actuator_gear[a, 0] if a >= 0 else 1.0 for a in actuators], dtype=float),
+        gain=np.array([model.actuator_gainprm[a, 0] if a >= 0 else 1.0 for a in actuators], dtype=float),
+        ctrl_range=np.array([_range(model.actuator_ctrllimited[a], model.actuator_ctrlrange[a]) if a >= 0
+                             else unbounded for a in actuators]),
+        force_range=np.array([_range(model.actuator_forcelimited[a], model.actuator_forcerange[a]) if a >= 0
+                              else unbounded for a in actuators]),
+        joint_range=np.array([_range(model.jnt_actfrclimited[j], model.jnt_actfrcrange[j]) for j in ids]))
     return Robot(path=path, model=model, joint_names=tuple(joint_names),
                  qpos_address=np.array([model.jnt_qposadr[j] for j in ids]),
                  dof_address=np.array([model.jnt_dofadr[j] for j in ids]),
-                 actuation=tuple(actuation[j] for j in ids), steps_per_period=_steps(path, model, period),
-                 period=period, actuators_used=model.nu)
+                 actuation=actuation, steps_per_period=_steps(path, model, period),
+                 period=period)
 
 
 def _steps(path: Path, model, period: float) -> int:
@@ -271,8 +278,7 @@ class MujocoPlant:
             raise RobotError(f'sample {self.sample}: command must be {self.dof} numbers, got {command!r}')
         limited = np.empty((self.dof, 1))
         saturate(np.ascontiguousarray(values[:, None]), self._limit, limited, 1)
-        return np.array([actuation.applied(float(torque))
-                         for actuation, torque in zip(self.robot.actuation, limited[:, 0])])
+        return self.robot.actuation.applied(limited[:, 0])
 
     def advance(self, applied_torque: np.ndarray) -> bool:
         """Hold a torque `saturate` returned over [t_n, t_{n+1}): the period's MuJoCo timesteps.
@@ -286,13 +292,10 @@ class MujocoPlant:
         if self.diverged:
             return False
         robot, data, mujoco = self.robot, self._data, self._mujoco
-        data.qfrc_applied[:] = 0.0
-        data.ctrl[:] = 0.0
-        for actuation, address, value in zip(robot.actuation, robot.dof_address, torque.tolist()):
-            if actuation.actuator >= 0:
-                data.ctrl[actuation.actuator] = actuation.control(value)
-            else:
-                data.qfrc_applied[address] = value
+        actuation = robot.actuation
+        motors = actuation.actuator >= 0
+        data.ctrl[actuation.actuator[motors]] = actuation.control(torque)[motors]
+        data.qfrc_applied[robot.dof_address[~motors]] = torque[~motors]
         warned = [data.warning[w].number for w in self._unstable]
         for _ in range(robot.steps_per_period):
             mujoco.mj_step(robot.model, data)
@@ -302,7 +305,7 @@ class MujocoPlant:
             self.diverged = True
             return False
         applied = data.qfrc_actuator[robot.dof_address] + data.qfrc_applied[robot.dof_address]
-        if not np.allclose(applied, torque, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(torque), initial=1.0))):
+        if not float(np.max(np.abs(applied - torque))) <= 1e-12 * max(1.0, float(np.max(np.abs(torque)))):
             raise RobotError(f'MJCF {robot.path}: MuJoCo applied the joint torques {applied.tolist()} where ddarm held '
                              f'{torque.tolist()} (sample {self.sample}): its actuators are not what ddarm read')
         self._q, self._v = q, v
