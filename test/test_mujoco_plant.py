@@ -361,3 +361,30 @@ def test_a_plant_node_refuses_a_robot_that_is_not_its_arm_and_options_of_its_own
         assert node.plant.robot.steps_per_period == 20 and node.plant.robot.period == 0.02
     finally:
         node.destroy_node()
+
+
+def test_without_mujoco_installed_mjcf_says_how_to_install_it(two_link):
+    import subprocess
+    import sys
+
+    mjcf, urdf, motion = two_link
+    script = ('import sys; sys.modules["mujoco"] = None; from ddarm.cli.main import main; '
+              f'sys.exit(main(["episode", "--controller", "pd_gravity", "--urdf", {str(urdf)!r}, "--motion", '
+              f'{str(motion)!r}, "--mjcf", {str(mjcf)!r}, "--omega", "5"]))')
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ''
+    assert "MuJoCo is not installed: pip install 'ddarm[mujoco]'" in done.stderr and 'Traceback' not in done.stderr
+
+
+def test_mujoco_is_imported_only_when_a_robot_is_given(two_link):
+    import subprocess
+    import sys
+
+    _, urdf, motion = two_link
+    script = ('import sys; from ddarm.cli.main import main; '
+              f'code = main(["episode", "--controller", "pd_gravity", "--urdf", {str(urdf)!r}, "--motion", '
+              f'{str(motion)!r}, "--omega", "5", "--json"]); print("mujoco" in sys.modules, file=sys.stderr); '
+              'sys.exit(code)')
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == 'False'
