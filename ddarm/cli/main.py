@@ -20,6 +20,7 @@ from ddarm.cli.output import terminal_streams
 from ddarm.cli.reproduce import command_reproduce, job_count
 from ddarm.cli.score import command_score
 from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
+from ddarm.cli.validate import add_validate_arguments, command_validate
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
@@ -74,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     episode.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap', help='bag storage (mcap)')
     add_robot_arguments(episode)
     episode.set_defaults(handler=command_episode)
+    validate = commands.add_parser('validate', help="run a controller YAML on a robot (MJCF) beside ddarm's prediction")
+    add_validate_arguments(validate)
+    validate.set_defaults(handler=command_validate)
     omega = commands.add_parser('omega', help="section 2's procedure: the ω rule's ω from permitted errors "
                                              'and torques')
     add_episode_arguments(omega, gains=False)
