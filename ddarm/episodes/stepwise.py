@@ -13,9 +13,10 @@ import numpy as np
 from ddarm.control.laws import LAWS, Measurement, ReferencePoint, SampledController, gravity_feedforward, make_law
 from ddarm.episodes.result import Episodes
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, model_arm, model_chain
+from ddarm.physics.plant import SampledPlant
 
 
-def run_stepwise(spec: EpisodeSpec, plan: EpisodePlan, plant) -> Episodes:
+def run_stepwise(spec: EpisodeSpec, plan: EpisodePlan, plant: SampledPlant) -> Episodes:
     """Run `spec` on `plan` against `plant`, which starts at the plan's q0, q̇0 (spec §5: P_n from the state of
     sample n - d, the applied torque held over [t_n, t_{n+1}), a non-finite command ending the scored samples at n,
     a state out of bounds after the period from n at n + 1)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -172,6 +173,18 @@ def _advance_one(forward_dynamics, mass_scale, options, applied, q, v):
     within = np.empty(1, dtype=np.bool_)
     advance(forward_dynamics, mass_scale, options, applied, q, v, within, step_workspace(q.shape[0], 1), 1)
     return within[0]
+
+
+class SampledPlant(Protocol):
+    """What an episode's loop asks of a plant, ddarm's (`Plant`) or a robot's (MujocoPlant): the state at sample n,
+    the torque the actuators apply for a command, and the period after it under that torque held."""
+
+    q: np.ndarray
+    v: np.ndarray
+
+    def saturate(self, command: np.ndarray) -> np.ndarray: ...
+
+    def advance(self, applied_torque: np.ndarray) -> bool: ...
 
 
 class Plant:
