@@ -432,3 +432,28 @@ def motion_of_duration(file: MotionFile, duration: float):
         # Fresh arrays: a caller may change its copy.
         return ProgrammedMotion(motion.q0.copy(), motion.qf.copy(), float(duration))
     return motion
+
+
+# Written by ddarm (a motion from a bag, an excitation): text that reads back exactly.
+_WORD = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
+
+
+def flow_numbers(values) -> str:
+    """Numbers as a YAML flow sequence that reads back as the same doubles."""
+    # repr: the shortest text that reads back as the same double (YAML 1.2 reads 1e-05 and -0.0 as floats)
+    return '[' + ', '.join(repr(float(value)) for value in values) + ']'
+
+
+def flow_names(names) -> str:
+    """Names as a YAML flow sequence that reads back as the same texts."""
+    return '[' + ', '.join(_flow_name(name) for name in names) + ']'
+
+
+def _flow_name(name: str) -> str:
+    """`name` as YAML that reads back as it: plain when it is a word the loader reads as that text (joint1, not
+    true or 1e5), else double-quoted, with what YAML would not read as it stands (a quote, a backslash, a control
+    character) escaped."""
+    if _WORD.fullmatch(name) and yaml.load(name, Loader=DataLoader) == name:
+        return name
+    return '"' + ''.join(c if (' ' <= c <= '~' or (c >= '\xa0' and c.isprintable())) and c not in '"\\'
+                         else f'\\U{ord(c):08x}' for c in name) + '"'

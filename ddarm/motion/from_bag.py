@@ -12,18 +12,16 @@ is Python's repr of the double.
 from __future__ import annotations
 
 import math
-import re
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import yaml
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from ddarm.datafiles import MAX_TOPIC_MESSAGES, DataFileError, bag_metadata_text, is_missing, unreachable
-from ddarm.motion.files import MAX_JOINTS, MAX_POINTS, DataLoader, parse_motion, shown
+from ddarm.motion.files import MAX_JOINTS, MAX_POINTS, flow_names, flow_numbers, parse_motion, shown
 from ddarm.motion.programmed import MotionError
 
 # For a bag that carries no message definitions of its own (older sqlite3 bags).
@@ -36,7 +34,6 @@ _NANOSEC_PER_SEC = 1_000_000_000
 # rosbags' own deserialize_cdr refuses (it allows 3; see ddarm.recording.bags.deserialize): up to 8 is padding.
 _CDR_PADDING = 8
 # A joint name written as it is (within a flow list: no comma, bracket, colon or space).
-_WORD = re.compile(r'[A-Za-z_][A-Za-z0-9_]*')
 
 
 def motion_file_from_bag(bag: Path | str, topic: str | None = None, joints: Sequence[str] | None = None,
@@ -160,15 +157,15 @@ def _from_trajectory(where: str, bag: Path, topic: str, message, count: int) -> 
     if len(message.points) > MAX_POINTS:
         raise MotionError(f'{where}: its first message holds {len(message.points)} points, more than the '
                           f'{MAX_POINTS} a motion may have')
-    lines += [f'joint_names: {_names(message.joint_names)}', 'points:']
+    lines += [f'joint_names: {flow_names(message.joint_names)}', 'points:']
     for i, point in enumerate(message.points):
         if not len(point.positions):
             raise MotionError(f'{where}: points[{i}] has no positions (velocities or accelerations alone, which the '
                               'JTC can integrate, are no motion file)')
-        lines.append(f'  - positions: {_numbers(_finite(where, f"points[{i}].positions", point.positions))}')
+        lines.append(f'  - positions: {flow_numbers(_finite(where, f"points[{i}].positions", point.positions))}')
         for key in ('velocities', 'accelerations'):
             if len(values := getattr(point, key)):
-                lines.append(f'    {key}: {_numbers(_finite(where, f"points[{i}].{key}", values))}')
+                lines.append(f'    {key}: {flow_numbers(_finite(where, f"points[{i}].{key}", values))}')
         lines.append(f'    time_from_start: {{sec: {point.time_from_start.sec}, '
                      f'nanosec: {point.time_from_start.nanosec}}}')
     return '\n'.join(lines) + '\n'
@@ -226,16 +223,16 @@ def _from_joint_states(where: str, bag: Path, topic: str, messages: list, joints
              f'of {len(messages)} (t = {after_first[used[0]]!r} to {after_first[used[-1]]!r} s after the first, by '
              f'header stamp), one point each; time_from_start counts from message {used[0]}.']
     if with_velocities:
-        lines.append(f'# The last point\'s velocities are written as zero (recorded: {_numbers(velocities[-1])}): the '
+        lines.append(f'# The last point\'s velocities are written as zero (recorded: {flow_numbers(velocities[-1])}): the '
                      'motion ends at rest, held at its last positions.')
         velocities[-1] = np.zeros(len(chosen))
     else:
         lines.append('# Positions only (not every message has velocities): the JTC joins such points linearly.')
-    lines += [f'joint_names: {_names(chosen)}', 'points:']
+    lines += [f'joint_names: {flow_names(chosen)}', 'points:']
     for n, i in enumerate(used):
-        lines.append(f'  - positions: {_numbers(positions[n])}')
+        lines.append(f'  - positions: {flow_numbers(positions[n])}')
         if with_velocities:
-            lines.append(f'    velocities: {_numbers(velocities[n])}')
+            lines.append(f'    velocities: {flow_numbers(velocities[n])}')
         lines.append(f'    time_from_start: {(stamps[i] - stamps[used[0]]) / _NANOSEC_PER_SEC!r}')
     return '\n'.join(lines) + '\n'
 
@@ -254,20 +251,3 @@ def _finite(where: str, field: str, values, names: Sequence[str] | None = None) 
     return values
 
 
-def _numbers(values) -> str:
-    # repr: the shortest text that reads back as the same double (YAML 1.2 reads 1e-05 and -0.0 as floats)
-    return '[' + ', '.join(repr(float(value)) for value in values) + ']'
-
-
-def _names(names: Sequence[str]) -> str:
-    return '[' + ', '.join(_name(name) for name in names) + ']'
-
-
-def _name(name: str) -> str:
-    """`name` as YAML that reads back as it: plain when it is a word the loader reads as that text (joint1, not
-    true or 1e5), else double-quoted, with what YAML would not read as it stands (a quote, a backslash, a control
-    character) escaped."""
-    if _WORD.fullmatch(name) and yaml.load(name, Loader=DataLoader) == name:
-        return name
-    return '"' + ''.join(c if (' ' <= c <= '~' or (c >= '\xa0' and c.isprintable())) and c not in '"\\'
-                         else f'\\U{ord(c):08x}' for c in name) + '"'

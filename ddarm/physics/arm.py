@@ -118,6 +118,7 @@ _UNUSED_JOINT_NUMBERS = (('safety_controller', ('soft_lower_limit', 'soft_upper_
 # element for: <ddarm:armature value="0.1"/> inside the <joint>, in kg m² (kg for a prismatic joint), with
 # xmlns:ddarm="https://github.com/ddarm/ddarm" on <robot>. urdfdom, MuJoCo's URDF compiler and other readers ignore it.
 ARMATURE_ELEMENT = 'ddarm:armature'
+ARMATURE_NAMESPACE = 'https://github.com/ddarm/ddarm'
 
 
 # A start tag as well-formed XML writes it, and one of its attributes (name, value in double or in single quotes).
