@@ -24,16 +24,16 @@ ROOT = Path(__file__).resolve().parents[1]
 PANDA_MENAGERIE = ROOT / 'config' / 'robots' / 'panda' / 'panda-menagerie.urdf'
 
 # The robot: a two-link arm (shoulder about z, elbow about y) whose elbow link carries a payload of 0.8 kg at
-# 0.3 m, with armature and damping its URDF does not have (MuJoCo: RK4 at 1 ms).
+# 0.3 m, with armature, damping and friction its URDF does not have (MuJoCo: RK4 at 1 ms).
 PAYLOAD = 0.8
 ROBOT_MJCF = f"""<mujoco model="two-payload">
   <option timestep="0.001" integrator="RK4"/>
   <worldbody>
     <body name="l1">
-      <joint name="shoulder" type="hinge" axis="0 0 1" armature="0.05" damping="0.4"/>
+      <joint name="shoulder" type="hinge" axis="0 0 1" armature="0.05" damping="0.4" frictionloss="0.3"/>
       <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.02 0.02"/>
       <body name="l2" pos="0.4 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" armature="0.03" damping="0.2"/>
+        <joint name="elbow" type="hinge" axis="0 1 0" armature="0.03" damping="0.2" frictionloss="0.1"/>
         <inertial pos="0.15 0 0" mass="1" diaginertia="0.005 0.01 0.01"/>
         <body name="payload" pos="0.3 0 0"><inertial pos="0 0 0" mass="{PAYLOAD}" diaginertia="1e-4 1e-4 1e-4"/></body>
       </body>
@@ -120,30 +120,32 @@ def test_the_log_cholesky_coordinates_give_consistent_links_and_round_trip():
     assert any('panda_joint1: pseudo-inertia' in p for p in problems) and any('friction' in p for p in problems)
 
 
-def test_the_robots_armature_damping_and_payload_are_identified_and_predict_a_bag_not_fitted(recorded, capsys):
+def test_the_robots_damping_friction_and_payload_are_identified_and_predict_a_bag_not_fitted(recorded, capsys):
     out = recorded['folder'] / 'identified.urdf'
     assert main(['identify', str(recorded['fit']), '--validate', str(recorded['check']), '--urdf',
                  str(recorded['urdf']), '--out', str(out), '--json']) == 0
     report = json.loads(capsys.readouterr().out)
     shoulder, elbow = report['joints']
-    # Both dampings are told apart by the data; tolerances chosen on this robot (and the Panda's, below).
-    assert shoulder['damping'] == pytest.approx(0.4, rel=0.02) and elbow['damping'] == pytest.approx(0.2, rel=0.02)
+    # Both dampings and frictions are told apart by the data. MuJoCo's frictionloss is a constraint that holds a
+    # joint still below it, where the model's C sign(q̇) does not: near rest the two differ, hence the tolerances,
+    # chosen on this robot (the Panda's, below, has no friction: 3 % on damping there).
+    assert shoulder['damping'] == pytest.approx(0.4, rel=0.05) and elbow['damping'] == pytest.approx(0.2, rel=0.05)
+    assert shoulder['friction'] == pytest.approx(0.3, rel=0.15) and elbow['friction'] == pytest.approx(0.1, rel=0.15)
     # Each armature acts only together with its link's inertia about the same axis (on this arm no other joint sees
     # that inertia): the data gives their sum, a base parameter, the elbow's: 0.03 + (0.01 + 1 · 0.15²) + (1e-4 +
     # 0.8 · 0.3²) kg m².
-    (combined,) = [entry for entry in report['base_parameters'] if entry['pivot'] == 'elbow.armature']
+    (combined,) = [entry for entry in report['base_parameters'] if entry['pivot'] in ('elbow.armature', 'elbow.Iyy')]
     assert combined['value'] == pytest.approx(0.03 + 0.01 + 0.15 ** 2 + 1e-4 + PAYLOAD * 0.3 ** 2, rel=0.01)
-    assert combined['std'] < 1e-3 * combined['value']
+    assert combined['std'] < 0.01 * combined['value']
     # The elbow link with its payload: 1.8 kg, its centre of mass moved out to (0.15 + 0.8 · 0.3) / 1.8 = 0.217 m.
     identified = load_arm(str(out), None, ('shoulder', 'elbow'), ())
     body = identified.model.inertias[2]
     assert body.mass * body.lever[0] == pytest.approx(1.0 * 0.15 + PAYLOAD * 0.3, rel=0.02)
     assert report['condition_number'] < 1000
+    # The identified model predicts the held-out bag's torques to 2 % (RMS, per joint).
     for residuals in (report['fit_residual'], report['validation_residual'][0]):
-        assert max(value for key, value in residuals.items() if key != 'bag') < 0.01
+        assert max(value for key, value in residuals.items() if key != 'bag') < 0.02
     assert not consistency_problems(identified, parameters(identified))
-    # The identified model predicts the held-out bag's torques; the nominal URDF does not.
-    assert max(report['validation_residual'][0][joint] for joint in ('shoulder', 'elbow')) < 0.01
 
 
 def test_an_episode_on_the_identified_urdf_predicts_the_robot_better_than_the_nominal_one(recorded, capsys):
