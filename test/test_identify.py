@@ -128,7 +128,7 @@ def test_the_robots_damping_friction_and_payload_are_identified_and_predict_a_ba
     shoulder, elbow = report['joints']
     # Both dampings and frictions are told apart by the data. MuJoCo's frictionloss is a constraint that holds a
     # joint still below it, where the model's C sign(q̇) does not: near rest the two differ, hence the tolerances,
-    # chosen on this robot (the Panda's, below, has no friction: 3 % on damping there).
+    # chosen on this robot (the Panda's, below, has no friction: 5 % on damping there).
     assert shoulder['damping'] == pytest.approx(0.4, rel=0.05) and elbow['damping'] == pytest.approx(0.2, rel=0.05)
     assert shoulder['friction'] == pytest.approx(0.3, rel=0.15) and elbow['friction'] == pytest.approx(0.1, rel=0.15)
     # Each armature acts only together with its link's inertia about the same axis (on this arm no other joint sees
@@ -199,8 +199,8 @@ def test_the_panda_robots_armature_and_damping_are_identified_where_the_data_tel
                                               0.01))
     found = joint_parameters(result.estimate, 7)
     np.testing.assert_allclose(found['armature'][2:], 0.1, rtol=0.03)
-    np.testing.assert_allclose(found['damping'], 1.0, rtol=0.03)
-    np.testing.assert_allclose(found['friction'], 0.0, atol=0.005)
+    np.testing.assert_allclose(found['damping'], 1.0, rtol=0.05)
+    np.testing.assert_allclose(found['friction'], 0.0, atol=0.01)
     pivots = {result.names[column] for column in result.base}
     assert {f'panda_joint{i}.armature' for i in range(3, 8)} <= pivots
     assert np.max(result.fit_residual) < 0.005 and not consistency_problems(nominal, result.estimate)

@@ -6,16 +6,14 @@ import argparse
 import shlex
 from pathlib import Path
 
-import numpy as np
-
 from ddarm.cli.arguments import finite, new_output_path
 from ddarm.cli.output import print_json
 from ddarm.episodes.spec import read_motion_file
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, load_arm, movable_joints
-from ddarm.physics.identification import (Identification, IdentificationError, PeriodSamples, identified_urdf,
-                                          identify, joined, joint_parameters, link_inertia, period_samples,
-                                          relative_residual)
+from ddarm.physics.identification import (REST_VELOCITY, Identification, IdentificationError, PeriodSamples,
+                                          identified_urdf, identify, joined, joint_parameters, link_inertia,
+                                          period_samples, relative_residual)
 from ddarm.physics.regressor import JOINT_PARAMETERS
 from ddarm.recording.bags import BagEpisode, checked_output_path, read_episode_bag
 from ddarm.recording.runs import write_new_text
@@ -99,8 +97,11 @@ def command_identify(args: argparse.Namespace) -> int:
         raise IdentificationError(f'{error} (the joints of {first.path})') from error
     fit_data = joined([_recording(bag, args.cutoff)[0] for bag in fitted])
     result = identify(arm, fit_data)
-    validation = [(str(bag.path), relative_residual(arm, result.estimate, _recording(bag, args.cutoff)[0]))
-                  for bag in held_out]
+    validation = []
+    for bag in held_out:
+        data = _recording(bag, args.cutoff)[0]
+        validation.append((str(bag.path), relative_residual(arm, result.estimate, data),
+                           relative_residual(arm, result.estimate, data, moving_only=False)))
     command = shlex.join(['ddarm', *args.argv])
     report = identification_report(arm, result, validation, str(out), command)
     write_new_text(out, identified_urdf(arm, result.estimate, _header(report)))
@@ -129,8 +130,11 @@ def identification_report(arm, result: Identification, validation, out: str, com
         'joints': joints,
         'fit_residual': dict(zip(arm.joint_names, result.fit_residual.tolist())),
         'least_squares_residual': dict(zip(arm.joint_names, result.base_residual.tolist())),
+        'rest_velocity': REST_VELOCITY,
         'validation_residual': [{'bag': bag, **dict(zip(arm.joint_names, residual.tolist()))}
-                                for bag, residual in validation],
+                                for bag, residual, _ in validation],
+        'validation_residual_all_samples': [{'bag': bag, **dict(zip(arm.joint_names, residual.tolist()))}
+                                            for bag, _, residual in validation],
         'constrained': list(result.least_squares_problems),
     }
 
@@ -143,6 +147,10 @@ def _header(report: dict) -> str:
         'Each controlled joint\'s composite body (every link it moves, fixed to it or beyond a locked joint) is its '
         'child link\'s <inertial>; the other links it moves have none. Where the data cannot tell parameters apart, '
         'they are held near the URDF\'s.'])
+
+
+def _joints(entry: dict) -> dict:
+    return {key: value for key, value in entry.items() if key != 'bag'}
 
 
 def _residuals(values: dict) -> str:
@@ -160,10 +168,11 @@ def print_identification(report: dict) -> None:
     for row in [header, *rows]:
         print('  ' + '  '.join(cell.rjust(width) if i else cell.ljust(width)
                                for i, (cell, width) in enumerate(zip(row, widths))))
-    print(f"  torque residual (RMS / RMS torque) per joint, fit: {_residuals(report['fit_residual'])}")
-    for entry in report['validation_residual']:
-        values = {key: value for key, value in entry.items() if key != 'bag'}
-        print(f"  on {entry['bag']} (not fitted): {_residuals(values)}")
+    print(f"  torque residual (RMS / RMS torque) per joint where it moves (|q̇| >= {report['rest_velocity']:g}), "
+          f"fit: {_residuals(report['fit_residual'])}")
+    for moving, every in zip(report['validation_residual'], report['validation_residual_all_samples']):
+        print(f"  on {moving['bag']} (not fitted): {_residuals(_joints(moving))}; with the samples at rest, where "
+              f"friction holds the joint: {_residuals(_joints(every))}")
     if not report['validation_residual']:
         print('  no --validate bag: the residuals above are on the fitted data only')
     if report['constrained']:
