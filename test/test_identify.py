@@ -240,3 +240,16 @@ def test_the_written_urdf_carries_exactly_the_identified_parameters(recorded, tm
     np.testing.assert_allclose(parameters(load_arm(str(path), None, ('shoulder', 'elbow'), ())), phi, rtol=1e-12,
                                atol=1e-15)
     assert '--' not in text.split('-->')[0].removeprefix('<?xml version="1.0"?>\n<!--')
+
+
+def test_a_bag_without_efforts_is_refused_saying_so(tmp_path):
+    from ddarm.cli.identify import _recording
+    from ddarm.recording.bags import BagEpisode
+
+    states = {n: (np.full(2, 0.01 * n), np.full(2, 1.0), None) for n in range(50)}
+    bag = BagEpisode(episode={'spec': {'period': 0.01}}, status='complete', joints=['shoulder', 'elbow'],
+                     reference_times=np.zeros(0), q_ref=np.zeros((0, 2)), v_ref=np.zeros((0, 2)),
+                     a_ref=np.zeros((0, 2)), nominal=np.zeros((0, 2)), states=states, commands={},
+                     path=tmp_path / 'no-efforts')
+    with pytest.raises(IdentificationError, match='no-efforts: it holds 0 periods with states and efforts'):
+        _recording(bag, None)
