@@ -243,7 +243,7 @@ def test_the_written_urdf_carries_exactly_the_identified_parameters(recorded, tm
 
 
 def test_a_bag_without_efforts_is_refused_saying_so(tmp_path):
-    from ddarm.cli.identify import _recording
+    from ddarm.cli.identify import bag_periods
     from ddarm.recording.bags import BagEpisode
 
     states = {n: (np.full(2, 0.01 * n), np.full(2, 1.0), None) for n in range(50)}
@@ -252,4 +252,4 @@ def test_a_bag_without_efforts_is_refused_saying_so(tmp_path):
                      a_ref=np.zeros((0, 2)), nominal=np.zeros((0, 2)), states=states, commands={},
                      path=tmp_path / 'no-efforts')
     with pytest.raises(IdentificationError, match='no-efforts: it holds 0 periods with states and efforts'):
-        _recording(bag, None)
+        bag_periods(bag, None)

@@ -38,7 +38,7 @@ def add_identify_parser(commands) -> None:
     identify_parser.set_defaults(handler=command_identify)
 
 
-def _recording(bag: BagEpisode, cutoff: float | None) -> tuple[PeriodSamples, float]:
+def bag_periods(bag: BagEpisode, cutoff: float | None) -> tuple[PeriodSamples, float]:
     """The bag's periods: the states of samples 0 … K (to the last one before a divergence) and the torque held
     over each (the effort of the next state)."""
     period = bag.episode.get('spec', {}).get('period')
@@ -61,7 +61,7 @@ def _recording(bag: BagEpisode, cutoff: float | None) -> tuple[PeriodSamples, fl
     return period_samples(q, v, torque, float(period), str(bag.path), cutoff), float(period)
 
 
-def _locked(bag: BagEpisode, urdf: str) -> tuple[tuple[str, float], ...]:
+def locked_joints(bag: BagEpisode, urdf: str) -> tuple[tuple[str, float], ...]:
     """The URDF's movable joints the bag's episode held still, where its motion file said (none: every movable
     joint was controlled)."""
     others = [name for name in movable_joints(urdf) if name not in bag.joints]
@@ -90,21 +90,21 @@ def command_identify(args: argparse.Namespace) -> int:
         if list(bag.joints) != list(first.joints):
             raise IdentificationError(f'{bag.path} records joints {list(bag.joints)}, {first.path} '
                                       f'{list(first.joints)}: bags of one arm only')
-    locked = _locked(first, args.urdf)
+    locked = locked_joints(first, args.urdf)
     try:
         arm = load_arm(str(Path(args.urdf).absolute()), None, tuple(first.joints), locked)
     except ModelError as error:
         raise IdentificationError(f'{error} (the joints of {first.path})') from error
-    fit_data = joined([_recording(bag, args.cutoff)[0] for bag in fitted])
+    fit_data = joined([bag_periods(bag, args.cutoff)[0] for bag in fitted])
     result = identify(arm, fit_data)
     validation = []
     for bag in held_out:
-        data = _recording(bag, args.cutoff)[0]
+        data = bag_periods(bag, args.cutoff)[0]
         validation.append((str(bag.path), relative_residual(arm, result.estimate, data),
                            relative_residual(arm, result.estimate, data, moving_only=False)))
     command = shlex.join(['ddarm', *args.argv])
     report = identification_report(arm, result, validation, str(out), command)
-    write_new_text(out, identified_urdf(arm, result.estimate, _header(report)))
+    write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
     if args.json:
         print_json(report)
     else:
@@ -139,7 +139,7 @@ def identification_report(arm, result: Identification, validation, out: str, com
     }
 
 
-def _header(report: dict) -> str:
+def urdf_header(report: dict) -> str:
     return '\n'.join([
         f"Identified by: {report['command']}",
         f"From {report['samples']} sampling periods; {len(report['base_parameters'])} base parameters; condition "

@@ -30,6 +30,7 @@ from ddarm.cli.campaign import add_campaign_parser
 from ddarm.cli.pareto import add_pareto_parser
 from ddarm.cli.stability import add_stability_parser
 from ddarm.cli.identify import add_identify_parser
+from ddarm.cli.transfer import add_transfer_parser
 from ddarm.cli.motion import add_motion_parser
 from ddarm.interrupts import Interrupted, stop_on_signals
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
@@ -140,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_stability_parser(commands)
     add_motion_parser(commands)
     add_identify_parser(commands)
+    add_transfer_parser(commands)
     add_campaign_parser(commands)
     return parser
 

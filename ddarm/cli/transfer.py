@@ -1,0 +1,233 @@
+"""`ddarm transfer`: tune on the URDF, validate on the robot, identify the robot from its own bags, tune again on the
+identified URDF and validate that: whether the gains' prediction transfers to the robot, in one run folder."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import shlex
+import sys
+from pathlib import Path
+
+from ddarm.cli.arguments import (absolute_path, add_robot_arguments, finite, new_output_name, output_path,
+                                 robot_joints, seed)
+from ddarm.cli.output import print_json
+from ddarm.cli.tune import index_name
+from ddarm.cli.validate import error_figure, saturated_joints
+from ddarm.control.gains import SEARCH_START_OMEGAS
+from ddarm.control.laws import CONTROLLERS
+from ddarm.episodes.engine import run_episode
+from ddarm.episodes.result import Episodes
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, check_episode, gains_from_omega
+from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET
+
+# The excitation episodes run under the ω rule at this ω (the README's identification recipe): gains that need
+# no model of the robot beyond the URDF, so the bags do not depend on the search's outcome.
+EXCITATION_OMEGA = 15.0
+# The held-out episode starts disturbed (3.1) by this τ: another initial state than the fitted one's.
+CHECK_TAU = 0.3
+
+
+def add_transfer_parser(commands) -> None:
+    parser = commands.add_parser('transfer', help='tune on the URDF, identify the robot from its bags, tune again '
+                                                  'and say whether the prediction transfers to the robot')
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    parser.add_argument('--urdf', required=True, metavar='FILE', help='the arm the nominal gains are tuned on')
+    parser.add_argument('--motion', required=True, metavar='FILE.yaml', help='the motion the gains are tuned for')
+    add_robot_arguments(parser)
+    parser.add_argument('--index', type=index_name, default='I', metavar='{I1,I2,I}',
+                        help='the index minimised and judged: I1 (2.5), I2, or I (3.2) (default I)')
+    parser.add_argument('--budget', type=int, default=DEFAULT_TUNE_BUDGET,
+                        help=f'most episodes of each of the two searches ({DEFAULT_TUNE_BUDGET})')
+    parser.add_argument('--seed', type=seed, default=0, help='random seed of the searches and the excitation (0)')
+    parser.add_argument('--excite-duration', type=finite, default=10.0, metavar='S',
+                        help='T of the excitation motion, s (10)')
+    parser.add_argument('--tolerance', type=finite, default=0.1,
+                        help='largest |measured - predicted| / measured index of the retuned gains that transfers '
+                             '(0.1)')
+    parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
+    parser.add_argument('--run', metavar='NAME', type=new_output_name,
+                        help='run folder name (default: transfer-<law>-<time>)')
+    parser.add_argument('--json', action='store_true', help='print one JSON object')
+    parser.set_defaults(handler=command_transfer, starts_ros=True)
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.json:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _excitation(template: EpisodeSpec, duration: float, seed: int, command: str, source: str):
+    """The excitation motion of the motion's controlled joints on the URDF, its locked joints held where the motion
+    holds them (ddarm motion --excite)."""
+    from ddarm.cli.motion import DEFAULT_HARMONICS, DEFAULT_POINT_PERIOD
+    from ddarm.motion.excitation import excitation_motion
+    from ddarm.physics.arm import load_arm, urdf_joints
+
+    joints, locked = arm_joints(template)
+    arm = load_arm(template.urdf, None, joints, locked)
+    described = urdf_joints(arm.urdf_path)
+    held = {name: value for name, value in arm.locked if described[name].mimic is None}  # a mimic joint follows
+    return excitation_motion(arm, duration, DEFAULT_HARMONICS, seed, None, DEFAULT_POINT_PERIOD, held, command,
+                             source)
+
+
+def _tuned(args: argparse.Namespace, template: EpisodeSpec, label: str):
+    """`ddarm tune`'s search (its default method and start ω) on `template`, with its progress bar."""
+    from ddarm.reporting.progress import Progress
+    from ddarm.tuning.tune import tune
+
+    with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
+        return tune(template, args.index, DEFAULT_METHOD, args.budget, SEARCH_START_OMEGAS, args.seed,
+                    progress=bar.update)
+
+
+def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episodes, Episodes]:
+    """The controller YAML as `ddarm validate` runs it: the prediction on its URDF, the measurement on the robot
+    (in-process). Returns the phase's record and both episodes."""
+    from ddarm.recording.gains_file import read_gains_file, validation_spec
+    from ddarm.tuning.transfer import side_record
+
+    gains = read_gains_file(gains_path)
+    predicted_spec = validation_spec(gains, tau=0.0, torque_limit='none')
+    measured_spec = dataclasses.replace(predicted_spec, mjcf=absolute_path(args.mjcf),
+                                        mjcf_joints=robot_joints(args, gains.joint_names))
+    predicted, measured = run_episode(predicted_spec), run_episode(measured_spec)
+    record = {'gains': str(gains_path),
+              'predicted': {**side_record(predicted), 'saturated': saturated_joints(predicted)},
+              'measured': {**side_record(measured), 'saturated': saturated_joints(measured)}}
+    return record, predicted, measured
+
+
+def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str) -> dict:
+    """`ddarm identify FIT --validate CHECK --urdf URDF --out OUT`, its report."""
+    from ddarm.cli.identify import bag_periods, identification_report, locked_joints, urdf_header
+    from ddarm.physics.arm import load_arm
+    from ddarm.physics.identification import identified_urdf, identify, relative_residual
+    from ddarm.recording.bags import read_episode_bag
+    from ddarm.recording.runs import write_new_text
+
+    fitted, held_out = read_episode_bag(fit), read_episode_bag(check)
+    arm = load_arm(urdf, None, tuple(fitted.joints), locked_joints(fitted, urdf))
+    result = identify(arm, bag_periods(fitted, None)[0])
+    data = bag_periods(held_out, None)[0]
+    validation = [(str(check), relative_residual(arm, result.estimate, data),
+                   relative_residual(arm, result.estimate, data, moving_only=False))]
+    report = identification_report(arm, result, validation, str(out), command)
+    write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
+    return report
+
+
+def command_transfer(args: argparse.Namespace) -> int:
+    from ddarm.tuning.outputs import check_outputs, run_folder, write_gains
+    from ddarm.tuning.transfer import improvement, verdict, write_transfer_page
+    from ddarm.tuning.tune import with_gains
+
+    if args.budget < 1:
+        raise EpisodeError(f'--budget must be a positive number of episodes, got {args.budget}')
+    if not (math.isfinite(args.tolerance) and args.tolerance >= 0):
+        raise EpisodeError(f'--tolerance must be a number >= 0, got {args.tolerance!r}')
+    if not (math.isfinite(args.excite_duration) and args.excite_duration > 0):
+        raise EpisodeError(f'--excite-duration must be a positive number of seconds, got {args.excite_duration!r}')
+    command = shlex.join(['ddarm', *args.argv])
+    # Every refusal before the searches: the URDF and the motion, the robot against the motion's joints, the
+    # excitation (a few seconds, and the one step that needs the URDF's limits), the run folder.
+    template = EpisodeSpec(controller=args.controller, kp=(1.0,), kv=(1.0,), urdf=absolute_path(args.urdf),
+                           motion=absolute_path(args.motion))
+    joints = arm_joints(template)[0]
+    template = dataclasses.replace(template, kp=(1.0,) * len(joints), kv=(1.0,) * len(joints))
+    robot = dict(mjcf=absolute_path(args.mjcf), mjcf_joints=robot_joints(args, joints))
+    if robot['mjcf'] is None:
+        raise EpisodeError('--mjcf FILE is required: the robot (an MJCF, or a URDF MuJoCo compiles) the gains are '
+                           'validated on and identified from')
+    check_episode(template)
+    check_episode(dataclasses.replace(template, **robot))
+    check_outputs(None, args.runs, args.run)
+    _say(args, f'excitation motion ({args.excite_duration:g} s) of {", ".join(joints)} …')
+    excitation = _excitation(template, args.excite_duration, args.seed, command, 'excite.yaml')
+    law = args.controller
+    with run_folder('transfer', law, args.runs, args.run, command) as run:
+        excite = run.write_text('excite.yaml', excitation.text)
+        # 1. the nominal tuning on the URDF
+        _say(args, f'1/7 tuning {law} on {args.urdf} ({args.budget} episodes, index {args.index}) …')
+        nominal_tuning = _tuned(args, template, 'nominal search')
+        nominal_spec = with_gains(template, nominal_tuning.search.kp, nominal_tuning.search.kv)
+        nominal_gains = Path(write_gains(run, nominal_tuning.search.kp, nominal_tuning.search.kv, nominal_spec,
+                                         f'{args.index} = {nominal_tuning.best[args.index]!r} on {args.urdf}\n'
+                                         f'from: {command}', name='nominal.yaml')[0])
+        # 2. the nominal gains on the robot
+        _say(args, '2/7 validating the nominal gains on the robot …')
+        nominal, *nominal_episodes = _validated(nominal_gains, args)
+        # 3, 4. the excitation recorded on the robot through the graph, twice
+        excite_spec = dataclasses.replace(template, motion=str(excite.absolute()), duration=None, **robot)
+        kp, kv = gains_from_omega(excite_spec, EXCITATION_OMEGA)
+        excite_spec = with_gains(excite_spec, kp, kv)
+        from ddarm.ros.session import run_graph_episode  # ROS only once the searches it does not need are done
+
+        bags = {}
+        for name, tau in (('fit', 0.0), ('check', CHECK_TAU)):
+            _say(args, f'3-4/7 recording the excitation on the robot through ROS (τ = {tau:g} s): bags/{name} …')
+            bags[name] = run.bag_path(name)
+            run_graph_episode(dataclasses.replace(excite_spec, tau=tau), bag=bags[name], command=command)
+        # 5. identification from the fitted bag, residuals on the held-out one
+        _say(args, '5/7 identifying the robot from bags/fit (bags/check held out) …')
+        identified = run.path / 'identified.urdf'
+        identification = _identified(template.urdf, bags['fit'], bags['check'], identified, command)
+        # 6. the same search on the identified URDF
+        retuned_template = dataclasses.replace(template, urdf=str(identified))
+        _say(args, f'6/7 tuning {law} on identified.urdf …')
+        retuned_tuning = _tuned(args, retuned_template, 'retuned search')
+        retuned_spec = with_gains(retuned_template, retuned_tuning.search.kp, retuned_tuning.search.kv)
+        retuned_gains = Path(write_gains(run, retuned_tuning.search.kp, retuned_tuning.search.kv, retuned_spec,
+                                         f'{args.index} = {retuned_tuning.best[args.index]!r} on {identified}\n'
+                                         f'from: {command}', name='retuned.yaml')[0])
+        # 7. the retuned gains on the robot
+        _say(args, '7/7 validating the retuned gains on the robot …')
+        retuned, *retuned_episodes = _validated(retuned_gains, args)
+        transfers, reason = verdict(retuned, args.index, args.tolerance)
+        report = {
+            'nominal': nominal,
+            'identification': {
+                'urdf': str(identified), 'condition_number': identification['condition_number'],
+                'joints': identification['joints'], 'validation_residual': identification['validation_residual'][0],
+                'fit_residual': identification['fit_residual'],
+                'excitation': {'motion': str(excite), 'condition_number': excitation.condition,
+                               'gains': f'{law}, ω rule at ω = {EXCITATION_OMEGA:g} on the URDF',
+                               'check_tau': CHECK_TAU}},
+            'retuned': retuned,
+            'transfers': transfers, 'verdict': reason, 'index': args.index, 'tolerance': args.tolerance,
+            'improvement_I1': improvement(nominal, retuned),
+            'bags': [str(bags['fit']), str(bags['check'])], 'run': str(run.path),
+        }
+        title = f'{law} gains of {Path(args.urdf).name} on {Path(args.mjcf).name}: tune, identify, re-tune'
+        figures = {}
+        for phase, (predicted, measured) in (('nominal', nominal_episodes), ('retuned', retuned_episodes)):
+            figures[phase] = f'errors-{phase}.png'
+            error_figure(run.path / figures[phase], predicted, measured, f'{phase} gains: {title}')
+        write_transfer_page(run, report, args.index, figures, title)
+        run.finish('complete', **report)
+    if args.json:
+        print_json(report)
+    else:
+        print_transfer(report)
+    return 0
+
+
+def print_transfer(report: dict) -> None:
+    from ddarm.tuning.transfer import improvement_sentence, index_rows
+
+    header = ['gains', 'index', 'predicted', 'measured', 'measured/predicted']
+    rows = index_rows(report)
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    for row in [header, *rows]:
+        print('  ' + '  '.join(cell.ljust(width) if i < 2 else cell.rjust(width)
+                               for i, (cell, width) in enumerate(zip(row, widths))))
+    identification = report['identification']
+    residuals = [value for key, value in identification['validation_residual'].items() if key != 'bag']
+    print(f"  identified {identification['urdf']}: condition number {identification['condition_number']:.4g}, "
+          f"held-out torque residual {min(residuals):.3%} to {max(residuals):.3%}")
+    print(f"  {report['verdict']}")
+    print(f"  {improvement_sentence(report['improvement_I1'])}")
+    print(f"  run folder {report['run']}")
+
