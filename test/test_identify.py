@@ -148,6 +148,30 @@ def test_the_robots_damping_friction_and_payload_are_identified_and_predict_a_ba
     assert not consistency_problems(identified, parameters(identified))
 
 
+def test_a_payload_at_a_known_point_is_weighed_with_every_joints_armature_damping_and_friction(recorded, capsys):
+    """With the URDF's links taken as they are, the payload's mass and both armatures are identifiable too."""
+    out = recorded['folder'] / 'payload.urdf'
+    assert main(['identify', str(recorded['fit']), '--validate', str(recorded['check']), '--urdf',
+                 str(recorded['urdf']), '--out', str(out), '--payload', 'l2=0.3,0,0', '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['payload']['link'] == 'l2' and report['payload']['point'] == [0.3, 0.0, 0.0]
+    assert report['payload']['mass'] == pytest.approx(PAYLOAD, rel=0.02) and report['payload']['std'] < 0.01
+    shoulder, elbow = report['joints']
+    assert shoulder['armature'] == pytest.approx(0.05, rel=0.05) and elbow['armature'] == pytest.approx(0.03, rel=0.05)
+    assert shoulder['damping'] == pytest.approx(0.4, rel=0.05) and elbow['damping'] == pytest.approx(0.2, rel=0.05)
+    assert shoulder['friction'] == pytest.approx(0.3, rel=0.15) and elbow['friction'] == pytest.approx(0.1, rel=0.15)
+    body = load_arm(str(out), None, ('shoulder', 'elbow'), ()).model.inertias[2]
+    assert body.mass == pytest.approx(1.0 + report['payload']['mass'], rel=1e-12)
+    for link, words in (('l9', "'l9' is not a link"), ('base', 'fixed to the base')):
+        assert main(['identify', str(recorded['fit']), '--urdf', str(recorded['urdf']), '--out',
+                     str(recorded['folder'] / f'{link}.urdf'), '--payload', f'{link}=0,0,0']) == 2
+        assert words in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:  # argparse's refusal
+        main(['identify', str(recorded['fit']), '--urdf', str(recorded['urdf']), '--out',
+              str(recorded['folder'] / 'bad.urdf'), '--payload', 'l2=0,0'])
+    assert refused.value.code == 2 and 'LINK=X,Y,Z' in capsys.readouterr().err
+
+
 def test_an_episode_on_the_identified_urdf_predicts_the_robot_better_than_the_nominal_one(recorded, capsys):
     out = recorded['folder'] / 'for-prediction.urdf'
     assert main(['identify', str(recorded['fit']), '--urdf', str(recorded['urdf']), '--out', str(out)]) == 0

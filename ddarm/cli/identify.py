@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 from pathlib import Path
 
@@ -12,8 +13,8 @@ from ddarm.episodes.spec import read_motion_file
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, load_arm, movable_joints
 from ddarm.physics.identification import (REST_VELOCITY, Identification, IdentificationError, PeriodSamples,
-                                          identified_urdf, identify, joined, joint_parameters, link_inertia,
-                                          period_samples, relative_residual)
+                                          identified_urdf, identify, identify_payload, joined, joint_parameters,
+                                          link_inertia, period_samples, relative_residual)
 from ddarm.physics.regressor import JOINT_PARAMETERS
 from ddarm.recording.bags import BagEpisode, checked_output_path, read_episode_bag
 from ddarm.recording.runs import write_new_text
@@ -34,8 +35,23 @@ def add_identify_parser(commands) -> None:
     identify_parser.add_argument('--cutoff', type=finite, metavar='HZ',
                                  help='a zero-phase low-pass of q, q̇ and the torques first (for measured noise; '
                                       'default none)')
+    identify_parser.add_argument('--payload', type=payload_point, metavar='LINK=X,Y,Z',
+                                 help="take the URDF's links as they are and identify a payload's mass at this point "
+                                      "of LINK's frame (m), with each joint's armature, damping and friction")
     identify_parser.add_argument('--json', action='store_true', help='print one JSON object')
     identify_parser.set_defaults(handler=command_identify)
+
+
+def payload_point(text: str) -> tuple[str, tuple[float, float, float]]:
+    """An argparse type: LINK=X,Y,Z, a point of the link's frame in m."""
+    link, equals, point = text.rpartition('=')
+    try:
+        values = tuple(float(value) for value in point.split(','))
+    except ValueError:
+        values = ()
+    if not (equals and link and len(values) == 3 and all(map(math.isfinite, values))):
+        raise argparse.ArgumentTypeError(f'{text!r} is not LINK=X,Y,Z (a link and three finite numbers, m)')
+    return link, values
 
 
 def bag_periods(bag: BagEpisode, cutoff: float | None) -> tuple[PeriodSamples, float]:
@@ -96,7 +112,7 @@ def command_identify(args: argparse.Namespace) -> int:
     except ModelError as error:
         raise IdentificationError(f'{error} (the joints of {first.path})') from error
     fit_data = joined([bag_periods(bag, args.cutoff)[0] for bag in fitted])
-    result = identify(arm, fit_data)
+    result = identify(arm, fit_data) if args.payload is None else identify_payload(arm, fit_data, *args.payload)
     validation = []
     for bag in held_out:
         data = bag_periods(bag, args.cutoff)[0]
@@ -136,6 +152,9 @@ def identification_report(arm, result: Identification, validation, out: str, com
         'validation_residual_all_samples': [{'bag': bag, **dict(zip(arm.joint_names, residual.tolist()))}
                                             for bag, _, residual in validation],
         'constrained': list(result.least_squares_problems),
+        'payload': None if result.payload is None else {
+            'link': result.payload.link, 'point': list(result.payload.point), 'mass': result.payload.mass,
+            'std': result.payload.std},
     }
 
 
@@ -179,4 +198,9 @@ def print_identification(report: dict) -> None:
         print('  the least-squares solution was not physically consistent ('
               + '; '.join(report['constrained']) + '): the parameters written are the consistent ones nearest it in '
               'fit')
-    print('  masses of links the data cannot weigh alone stay near the URDF\'s: see base_parameters (--json)')
+    payload = report['payload']
+    if payload is None:
+        print('  masses of links the data cannot weigh alone stay near the URDF\'s: see base_parameters (--json)')
+    else:
+        print(f"  payload on {payload['link']} at {payload['point']} m: {payload['mass']:.4g} ± {payload['std']:.2g} kg "
+              "(the URDF's links taken as they are)")

@@ -155,6 +155,16 @@ def consistency_problems(arm: Arm, phi: np.ndarray) -> list[str]:
 
 
 @dataclass(frozen=True)
+class Payload:
+    """A point mass on a link, at a point of the link's frame: its mass identified, with its standard deviation."""
+
+    link: str
+    point: tuple[float, float, float]
+    mass: float
+    std: float
+
+
+@dataclass(frozen=True)
 class Identification:
     """What the data says (base estimate, with standard deviations) and the consistent parameters written."""
 
@@ -170,6 +180,7 @@ class Identification:
     fit_residual: np.ndarray  # per joint, relative RMS of the torque the consistent estimate predicts, fit data
     base_residual: np.ndarray  # the same of the least-squares base estimate
     least_squares_problems: tuple[str, ...] = field(default=())  # what the unconstrained solution got wrong
+    payload: Payload | None = None  # identify_payload's point mass
 
     def std_of(self, index: int) -> float | None:
         """The standard deviation of φ's entry `index` where it is a base parameter of its own, else None."""
@@ -253,6 +264,68 @@ def identify(arm: Arm, data: PeriodSamples, max_condition: float = MAX_CONDITION
         base=columns, base_estimate=base_estimate, base_std=base_std, condition_number=condition, samples=len(data),
         fit_residual=relative_residual(arm, estimate, data), base_residual=relative_residual(arm, base_phi, data),
         least_squares_problems=tuple(consistency_problems(arm, least_squares)))
+
+
+def point_mass_parameters(arm: Arm, link: str, point) -> tuple[int, np.ndarray]:
+    """The controlled joint (0-based) that moves `link`, and the ten parameters per kilogram of a point mass at
+    `point` of the link's frame, in that joint's frame."""
+    model = arm.model
+    if not model.existFrame(link, pin.FrameType.BODY):
+        raise IdentificationError(f'the payload\'s link {link!r} is not a link of {arm.urdf_path}')
+    frame = model.frames[model.getFrameId(link, pin.FrameType.BODY)]
+    if frame.parentJoint == 0:
+        raise IdentificationError(f'the payload\'s link {link!r} is fixed to the base: no joint moves it')
+    x, y, z = frame.placement.act(np.asarray(point, dtype=float))
+    return frame.parentJoint - 1, np.array([1.0, x, y, z, y * y + z * z, -x * y, x * x + z * z, -x * z, -y * z,
+                                            x * x + y * y])
+
+
+def identify_payload(arm: Arm, data: PeriodSamples, link: str, point, max_condition: float = MAX_CONDITION
+                     ) -> Identification:
+    """The URDF's links taken as they are, a payload of unknown mass at a known point of `link`, and each joint's
+    armature, damping and friction: a small least squares (masses and parameters >= 0) in which all of these are
+    identifiable, unlike a link's own mass (identify). IdentificationError as identify."""
+    n = arm.dof
+    joint, per_kilogram = point_mass_parameters(arm, link, point)
+    prior = parameters(arm)
+    regressor = stacked_regressor(arm, data.q, data.v, data.a)
+    weights = np.tile(_weights(data.torque), len(data))
+    rows = moving(data).ravel()
+    weighted = (regressor / weights[:, None])[rows]
+    links = LINK_SIZE * n
+    target = (data.torque.ravel() / weights)[rows] - weighted[:, :links] @ prior[:links]
+    columns = np.column_stack([weighted[:, links:], weighted[:, LINK_SIZE * joint:LINK_SIZE * (joint + 1)]
+                               @ per_kilogram])
+    if len(data) < MIN_SAMPLES_PER_PARAMETER * columns.shape[1]:
+        raise IdentificationError(f'{len(data)} sampling periods are too few for the {columns.shape[1]} parameters: '
+                                  f'record at least {MIN_SAMPLES_PER_PARAMETER * columns.shape[1]}')
+    excited = np.linalg.norm(columns, axis=0) > BASE_TOLERANCE * np.max(np.linalg.norm(columns, axis=0))
+    names = [*parameter_names(arm)[links:], f'payload on {link}']
+    if not excited.all():
+        raise IdentificationError(f'the data does not excite {[name for name, e in zip(names, excited) if not e]}: '
+                                  'record an excitation motion (ddarm motion --excite) that moves every joint')
+    condition = float(np.linalg.cond(columns / np.linalg.norm(columns, axis=0)))
+    if not condition <= max_condition:
+        raise IdentificationError(f'the data excites the parameters poorly: condition number {condition:.4g}, above '
+                                  f'{max_condition:g}; record an excitation motion (ddarm motion --excite)')
+    free, *_ = np.linalg.lstsq(columns, target, rcond=None)
+    residual = target - columns @ free
+    variance = float(residual @ residual) / max(len(target) - columns.shape[1], 1)
+    std = np.sqrt(np.diag(variance * np.linalg.inv(columns.T @ columns)))
+    bounded = scipy.optimize.lsq_linear(columns, target, bounds=(0.0, np.inf)).x
+    estimate = prior.copy()
+    estimate[links:] = bounded[:-1]
+    estimate[LINK_SIZE * joint:LINK_SIZE * (joint + 1)] += bounded[-1] * per_kilogram
+    unbounded = prior.copy()
+    unbounded[links:] = free[:-1]
+    unbounded[LINK_SIZE * joint:LINK_SIZE * (joint + 1)] += free[-1] * per_kilogram
+    problems = [f'{name} {value:.6g} < 0' for name, value in zip(names, free) if value < 0]
+    return Identification(
+        joint_names=tuple(arm.joint_names), names=tuple(parameter_names(arm)), prior=prior, estimate=estimate,
+        base=np.arange(links, len(prior)), base_estimate=free[:-1], base_std=std[:-1], condition_number=condition,
+        samples=len(data), fit_residual=relative_residual(arm, estimate, data),
+        base_residual=relative_residual(arm, unbounded, data), least_squares_problems=tuple(problems),
+        payload=Payload(link, tuple(float(x) for x in point), float(bounded[-1]), float(std[-1])))
 
 
 def _consistent_fit(arm: Arm, weighted: np.ndarray, target: np.ndarray, prior: np.ndarray,
