@@ -277,3 +277,31 @@ def test_a_bag_without_efforts_is_refused_saying_so(tmp_path):
                      path=tmp_path / 'no-efforts')
     with pytest.raises(IdentificationError, match='no-efforts: it holds 0 periods with states and efforts'):
         bag_periods(bag, None)
+
+
+def test_samples_within_the_standard_deviations_are_consistent_urdfs_a_robust_tuning_takes(recorded, capsys):
+    from ddarm.tuning.robust import scenario_grid
+
+    out = recorded['folder'] / 'sampled.urdf'
+    assert main(['identify', str(recorded['fit']), '--urdf', str(recorded['urdf']), '--out', str(out),
+                 '--samples', '3', '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    paths = [Path(path) for path in report['samples_written']]
+    assert [path.name for path in paths] == [f'sampled-sample-{k}.urdf' for k in (1, 2, 3)]
+    joints = ('shoulder', 'elbow')
+    estimate = parameters(load_arm(str(out), None, joints, ()))
+    stds = {entry['pivot']: entry['std'] for entry in report['base_parameters']}
+    names = [*(f'{joint}.{p}' for joint in joints for p in ('m', 'mcx', 'mcy', 'mcz', 'Ixx', 'Ixy', 'Iyy', 'Ixz',
+                                                             'Iyz', 'Izz')),
+             *(f'{joint}.{p}' for p in ('armature', 'damping', 'friction') for joint in joints)]
+    for path in paths:
+        arm = load_arm(str(path), None, joints, ())
+        sample = parameters(arm)
+        assert not consistency_problems(arm, sample) and not np.array_equal(sample, estimate)
+        for name, value, centre in zip(names, sample, estimate):
+            assert abs(value - centre) <= (6 * stds[name] if name in stds else 1e-12 * max(1.0, abs(centre)))
+    template = EpisodeSpec(controller='computed_torque', kp=(225.0, 225.0), kv=(30.0, 30.0), urdf=str(out),
+                           motion=str(recorded['folder'] / 'check.yaml'))
+    scenarios = scenario_grid(template, urdfs=[str(path) for path in paths])
+    assert [s.urdf for s in scenarios] == [str(path) for path in paths]
+    assert all(s.model_urdf == str(out) for s in scenarios)

@@ -120,7 +120,7 @@ def test_ddarm_tune_json_has_the_robust_comparison_and_the_yaml_says_it_is_robus
     robust = report['robust']
     assert robust['objective'] == 'mean'
     assert robust['scenarios'] == [
-        {'tau': tau, 'mass_scale': scale, 'external_torque': [0.0, 20.0, 5.0]}
+        {'tau': tau, 'mass_scale': scale, 'external_torque': [0.0, 20.0, 5.0], 'urdf': None}
         for tau in (0.0, 0.1) for scale in ([0.8] * 3, [1.2, 1.1, 1.0])]
     assert robust['chosen']['kp'] == report['kp'] and robust['chosen']['kv'] == report['kv']
     for gains in (robust['chosen'], robust['nominal_optimum']):

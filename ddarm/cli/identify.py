@@ -7,14 +7,14 @@ import math
 import shlex
 from pathlib import Path
 
-from ddarm.cli.arguments import finite, new_output_path
+from ddarm.cli.arguments import finite, new_output_path, whole_number
 from ddarm.cli.output import print_json
 from ddarm.episodes.spec import read_motion_file
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, load_arm, movable_joints
 from ddarm.physics.identification import (REST_VELOCITY, Identification, IdentificationError, PeriodSamples,
                                           identified_urdf, identify, identify_payload, joined, joint_parameters,
-                                          link_inertia, period_samples, relative_residual)
+                                          link_inertia, parameter_samples, period_samples, relative_residual)
 from ddarm.physics.regressor import JOINT_PARAMETERS
 from ddarm.recording.bags import BagEpisode, checked_output_path, read_episode_bag
 from ddarm.recording.runs import write_new_text
@@ -38,6 +38,9 @@ def add_identify_parser(commands) -> None:
     identify_parser.add_argument('--payload', type=payload_point, metavar='LINK=X,Y,Z',
                                  help="take the URDF's links as they are and identify a payload's mass at this point "
                                       "of LINK's frame (m), with each joint's armature, damping and friction")
+    identify_parser.add_argument('--samples', type=whole_number(0, 100), default=0, metavar='K',
+                                 help="also write K URDFs of parameters drawn within the estimate's standard "
+                                      'deviations, <out>-sample-<k>.urdf, for ddarm tune --robust-urdf (0)')
     identify_parser.add_argument('--json', action='store_true', help='print one JSON object')
     identify_parser.set_defaults(handler=command_identify)
 
@@ -121,6 +124,12 @@ def command_identify(args: argparse.Namespace) -> int:
     command = shlex.join(['ddarm', *args.argv])
     report = identification_report(arm, result, validation, str(out), command)
     write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
+    report['samples_written'] = []
+    for k, phi in enumerate(parameter_samples(arm, result, args.samples), start=1):
+        sample = out.with_name(f'{out.stem}-sample-{k}{out.suffix}')
+        write_new_text(sample, identified_urdf(arm, phi, urdf_header(report) + f'\nSample {k} of {args.samples}: '
+                                               'base parameters drawn within their standard deviations.'))
+        report['samples_written'].append(str(sample))
     if args.json:
         print_json(report)
     else:
@@ -192,6 +201,8 @@ def print_identification(report: dict) -> None:
     for moving, every in zip(report['validation_residual'], report['validation_residual_all_samples']):
         print(f"  on {moving['bag']} (not fitted): {_residuals(_joints(moving))}; with the samples at rest, where "
               f"friction holds the joint: {_residuals(_joints(every))}")
+    for sample in report.get('samples_written', []):
+        print(f'  sample {sample}')
     if not report['validation_residual']:
         print('  no --validate bag: the residuals above are on the fitted data only')
     if report['constrained']:

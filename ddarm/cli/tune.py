@@ -7,7 +7,7 @@ import dataclasses
 import shlex
 import sys
 
-from ddarm.cli.arguments import episode_spec, finite
+from ddarm.cli.arguments import absolute_path, episode_spec, finite
 from ddarm.cli.output import format_vector, print_json
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import check_episode, gains_from_omega, loop_stability_warnings
@@ -43,6 +43,9 @@ def add_robust_arguments(parser: argparse.ArgumentParser) -> None:
                         help='constant external torques P^z in N m, one per joint comma-separated (0,20,5), one '
                              'vector per scenario; one starting with a minus as --robust-external-torque=-5,0,0 '
                              '(default: --external-torque)')
+    parser.add_argument('--robust-urdf', nargs='+', action='extend', metavar='FILE',
+                        help="the plant's URDF, one per scenario (the controller's model stays --model-urdf or "
+                             '--urdf): e.g. the samples of an identification, ddarm identify --samples')
     parser.add_argument('--objective', choices=AGGREGATES,
                         help='what the gains minimise over the scenarios: the worst case (default) or the mean')
 
@@ -51,11 +54,12 @@ def robust_scenarios(args: argparse.Namespace, template):
     """The scenarios the --robust-* options define, or None without them."""
     from ddarm.tuning.robust import RobustError, scenario_grid
 
-    axes = (args.robust_tau, args.robust_mass_scale, args.robust_external_torque)
+    urdfs = None if args.robust_urdf is None else [absolute_path(path) for path in args.robust_urdf]
+    axes = (args.robust_tau, args.robust_mass_scale, args.robust_external_torque, urdfs)
     if all(axis is None for axis in axes):
         if args.objective is not None:
             raise RobustError('--objective needs scenarios to aggregate over: give --robust-tau, '
-                              '--robust-mass-scale and/or --robust-external-torque')
+                              '--robust-mass-scale, --robust-external-torque and/or --robust-urdf')
         return None
     return scenario_grid(template, *axes)
 

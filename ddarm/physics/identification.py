@@ -266,6 +266,26 @@ def identify(arm: Arm, data: PeriodSamples, max_condition: float = MAX_CONDITION
         least_squares_problems=tuple(consistency_problems(arm, least_squares)))
 
 
+def parameter_samples(arm: Arm, result: Identification, count: int, seed: int = 0) -> list[np.ndarray]:
+    """`count` draws of φ within the identification's uncertainty: its base parameters from the normal
+    distribution of their estimate and standard deviations (each drawn alone: their covariance is not kept), added
+    to the written parameters' base entries, which moves the torques as the base parameters do. A draw that is not
+    physically consistent is drawn again."""
+    rng = np.random.default_rng(seed)
+    samples = []
+    while len(samples) < count:
+        for _ in range(100):
+            phi = result.estimate.copy()
+            phi[result.base] += rng.normal(0.0, result.base_std)
+            if not consistency_problems(arm, phi):
+                samples.append(phi)
+                break
+        else:
+            raise IdentificationError('no physically consistent parameters within the standard deviations in 100 '
+                                      'draws: the identification is too uncertain to sample')
+    return samples
+
+
 def point_mass_parameters(arm: Arm, link: str, point) -> tuple[int, np.ndarray]:
     """The controlled joint (0-based) that moves `link`, and the ten parameters per kilogram of a point mass at
     `point` of the link's frame, in that joint's frame."""

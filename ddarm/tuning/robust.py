@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, arm_joints, check_episode, plan_episode
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, checked_tau
+from ddarm.physics.arm import default_urdf_path
 
 # How a point's indices over the scenarios become the one value a search minimises: their max, or their mean.
 AGGREGATES = ('worst', 'mean')
@@ -67,7 +69,7 @@ def _per_joint(option: str, values, joints: tuple[str, ...], *, scalar_for_all: 
     return tuple(float(value) for value in array)
 
 
-def scenario_grid(template: EpisodeSpec, taus=None, mass_scales=None, external_torques=None
+def scenario_grid(template: EpisodeSpec, taus=None, mass_scales=None, external_torques=None, urdfs=None
                   ) -> tuple[EpisodeSpec, ...]:
     """The template with τ, mass scale and P^z replaced by each combination of the values given: the scenarios.
 
@@ -76,9 +78,11 @@ def scenario_grid(template: EpisodeSpec, taus=None, mass_scales=None, external_t
         taus: τ of (3.1) in s, each within [0, T].
         mass_scales: plant link mass / model link mass, each one number (every link) or one per joint.
         external_torques: constant joint torques P^z in N m (N for a prismatic joint), each one per joint.
+        urdfs: the plant's URDF (absolute paths), the controller's model staying the template's.
 
-    Scenarios in the order τ, then mass scale, then P^z (the last varying fastest). Raises RobustError naming
-    the option (--robust-tau, --robust-mass-scale, --robust-external-torque) of a value that cannot be run.
+    Scenarios in the order τ, then mass scale, then P^z, then URDF (the last varying fastest). Raises RobustError
+    naming the option (--robust-tau, --robust-mass-scale, --robust-external-torque, --robust-urdf) of a value that
+    cannot be run.
     """
     joints = arm_joints(template)[0]
     tau_axis = [template.tau] if taus is None else _checked_taus(taus, template.duration)
@@ -87,15 +91,21 @@ def scenario_grid(template: EpisodeSpec, taus=None, mass_scales=None, external_t
     torque_axis = [template.external_torque] if external_torques is None else [
         _per_joint('--robust-external-torque', torque, joints, scalar_for_all=False, positive=False)
         for torque in external_torques]
+    urdf_axis = [template.urdf] if urdfs is None else list(urdfs)
     for option, axis, given in (('--robust-tau', tau_axis, taus), ('--robust-mass-scale', mass_axis, mass_scales),
-                                ('--robust-external-torque', torque_axis, external_torques)):
+                                ('--robust-external-torque', torque_axis, external_torques),
+                                ('--robust-urdf', urdf_axis, urdfs)):
         if given is not None:
             if not axis:
                 raise RobustError(f'{option}: give at least one value')
             _no_repeats(option, axis)
+    # The plant's URDF varies; the controller's model stays the template's.
+    model = (template.model_urdf or template.urdf or str(default_urdf_path())) if urdfs is not None \
+        else template.model_urdf
     scenarios = []
-    for tau, mass_scale, external_torque in itertools.product(tau_axis, mass_axis, torque_axis):
-        scenario = dataclasses.replace(template, tau=tau, mass_scale=mass_scale, external_torque=external_torque)
+    for tau, mass_scale, external_torque, urdf in itertools.product(tau_axis, mass_axis, torque_axis, urdf_axis):
+        scenario = dataclasses.replace(template, tau=tau, mass_scale=mass_scale, external_torque=external_torque,
+                                       urdf=urdf, model_urdf=model)
         try:
             check_episode(scenario)
         except EpisodeError as error:
@@ -108,7 +118,8 @@ def scenario_record(scenario: EpisodeSpec, dof: int) -> dict:
     """What defines the scenario, for the JSON: τ (s), the mass scale per joint, P^z per joint (N m) or None."""
     return {'tau': scenario.tau,
             'mass_scale': list(scenario.mass_scale) if scenario.mass_scale is not None else [1.0] * dof,
-            'external_torque': list(scenario.external_torque) if scenario.external_torque is not None else None}
+            'external_torque': list(scenario.external_torque) if scenario.external_torque is not None else None,
+            'urdf': scenario.urdf}
 
 
 def describe_scenario(scenario: EpisodeSpec, dof: int) -> str:
@@ -116,8 +127,9 @@ def describe_scenario(scenario: EpisodeSpec, dof: int) -> str:
     record = scenario_record(scenario, dof)
     scale = record['mass_scale']
     torque = record['external_torque']
+    plant = '' if scenario.model_urdf is None else f", plant {Path(scenario.urdf or default_urdf_path()).name}"
     return (f"τ = {record['tau']:g} s, mass scale {_described(scale[:1] if len(set(scale)) == 1 else scale)}, "
-            f"P^z {'none' if torque is None else _described(torque) + ' N m'}")
+            f"P^z {'none' if torque is None else _described(torque) + ' N m'}{plant}")
 
 
 @dataclass(frozen=True)
