@@ -153,3 +153,17 @@ def test_a_robot_of_other_joints_is_refused_before_any_work(files, tmp_path):
     assert code == 2 and out == ''
     assert err.count('\n') == 1 and err.startswith('ddarm transfer: ') and 'elbow' in err
     assert not (tmp_path / 'runs').exists()  # refused before any run folder
+
+
+def test_a_retuning_robust_over_the_identifications_samples_reports_its_predicted_worst_case(files, tmp_path):
+    code, out, _ = transfer(files, tmp_path, '--run', 'robust', '--samples', '2')
+    assert code == 0
+    report = json.loads((tmp_path / 'robust' / 'summary.json').read_text())
+    retuned = report['retuned']
+    assert [Path(path).name for path in retuned['samples']] == ['identified-sample-1.urdf',
+                                                                 'identified-sample-2.urdf']
+    assert all(Path(path).is_file() for path in retuned['samples'])
+    # The point estimate is one of the scenarios: the worst case is at least its prediction.
+    assert retuned['predicted_worst'] >= retuned['predicted']['I'] * (1 - 1e-12)
+    assert 'predicted worst I' in out and 'predicted worst I' in (tmp_path / 'robust' / 'transfer.md').read_text()
+

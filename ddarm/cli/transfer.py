@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from ddarm.cli.arguments import (absolute_path, add_robot_arguments, finite, new_output_name, output_path,
-                                 robot_joints, seed)
+                                 robot_joints, seed, whole_number)
 from ddarm.cli.output import print_json
 from ddarm.cli.tune import index_name
 from ddarm.cli.validate import error_figure, saturated_joints
@@ -46,6 +46,9 @@ def add_transfer_parser(commands) -> None:
     parser.add_argument('--tolerance', type=finite, default=0.1,
                         help='largest |measured - predicted| / measured index of the retuned gains that transfers '
                              '(0.1)')
+    parser.add_argument('--samples', type=whole_number(0, 100), default=0, metavar='K',
+                        help='retune robustly (worst case) over K parameter sets drawn within the identification\'s '
+                             'standard deviations, beside the point estimate (0: on the point estimate alone)')
     parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
     parser.add_argument('--run', metavar='NAME', type=new_output_name,
                         help='run folder name (default: transfer-<law>-<time>)')
@@ -73,14 +76,15 @@ def _excitation(template: EpisodeSpec, duration: float, seed: int, command: str,
                              source)
 
 
-def _tuned(args: argparse.Namespace, template: EpisodeSpec, label: str):
-    """`ddarm tune`'s search (its default method and start ω) on `template`, with its progress bar."""
+def _tuned(args: argparse.Namespace, template: EpisodeSpec, label: str, scenarios=None):
+    """`ddarm tune`'s search (its default method and start ω) on `template`, with its progress bar; with
+    `scenarios`, its robust search (worst case)."""
     from ddarm.reporting.progress import Progress
     from ddarm.tuning.tune import tune
 
     with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
         return tune(template, args.index, DEFAULT_METHOD, args.budget, SEARCH_START_OMEGAS, args.seed,
-                    progress=bar.update)
+                    progress=bar.update, scenarios=scenarios)
 
 
 def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episodes, Episodes]:
@@ -100,11 +104,11 @@ def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episod
     return record, predicted, measured
 
 
-def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str) -> dict:
-    """`ddarm identify FIT --validate CHECK --urdf URDF --out OUT`, its report."""
+def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str, samples: int) -> dict:
+    """`ddarm identify FIT --validate CHECK --urdf URDF --out OUT --samples K`, its report."""
     from ddarm.cli.identify import bag_periods, identification_report, locked_joints, urdf_header
     from ddarm.physics.arm import load_arm
-    from ddarm.physics.identification import identified_urdf, identify, relative_residual
+    from ddarm.physics.identification import identified_urdf, identify, parameter_samples, relative_residual
     from ddarm.recording.bags import read_episode_bag
     from ddarm.recording.runs import write_new_text
 
@@ -116,6 +120,11 @@ def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str) -> d
                    relative_residual(arm, result.estimate, data, moving_only=False))]
     report = identification_report(arm, result, validation, str(out), command)
     write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
+    report['samples_written'] = []
+    for k, phi in enumerate(parameter_samples(arm, result, samples), start=1):
+        sample = out.with_name(f'{out.stem}-sample-{k}{out.suffix}')
+        write_new_text(sample, identified_urdf(arm, phi, urdf_header(report) + f'\nSample {k} of {samples}.'))
+        report['samples_written'].append(str(sample))
     return report
 
 
@@ -173,11 +182,16 @@ def command_transfer(args: argparse.Namespace) -> int:
         # 5. identification from the fitted bag, residuals on the held-out one
         _say(args, '5/7 identifying the robot from bags/fit (bags/check held out) …')
         identified = run.path / 'identified.urdf'
-        identification = _identified(template.urdf, bags['fit'], bags['check'], identified, command)
-        # 6. the same search on the identified URDF
+        identification = _identified(template.urdf, bags['fit'], bags['check'], identified, command, args.samples)
+        # 6. the same search on the identified URDF (robust over its samples, if asked)
         retuned_template = dataclasses.replace(template, urdf=str(identified))
-        _say(args, f'6/7 tuning {law} on identified.urdf …')
-        retuned_tuning = _tuned(args, retuned_template, 'retuned search')
+        scenarios = None
+        if args.samples:
+            from ddarm.tuning.robust import scenario_grid
+
+            scenarios = scenario_grid(retuned_template, urdfs=[str(identified), *identification['samples_written']])
+        _say(args, f'6/7 tuning {law} on identified.urdf{f" and {args.samples} samples" if args.samples else ""} …')
+        retuned_tuning = _tuned(args, retuned_template, 'retuned search', scenarios)
         retuned_spec = with_gains(retuned_template, retuned_tuning.search.kp, retuned_tuning.search.kv)
         retuned_gains = Path(write_gains(run, retuned_tuning.search.kp, retuned_tuning.search.kv, retuned_spec,
                                          f'{args.index} = {retuned_tuning.best[args.index]!r} on {identified}\n'
@@ -195,7 +209,9 @@ def command_transfer(args: argparse.Namespace) -> int:
                 'excitation': {'motion': str(excite), 'condition_number': excitation.condition,
                                'gains': f'{law}, ω rule at ω = {EXCITATION_OMEGA:g} on the URDF',
                                'check_tau': CHECK_TAU}},
-            'retuned': retuned,
+            'retuned': {**retuned, 'predicted_worst': None if retuned_tuning.robust is None
+                        else retuned_tuning.robust.chosen.worst,
+                        'samples': identification['samples_written']},
             'transfers': transfers, 'verdict': reason, 'index': args.index, 'tolerance': args.tolerance,
             'improvement_I1': improvement(nominal, retuned),
             'bags': [str(bags['fit']), str(bags['check'])], 'run': str(run.path),
@@ -227,6 +243,12 @@ def print_transfer(report: dict) -> None:
     residuals = [value for key, value in identification['validation_residual'].items() if key != 'bag']
     print(f"  identified {identification['urdf']}: condition number {identification['condition_number']:.4g}, "
           f"held-out torque residual {min(residuals):.3%} to {max(residuals):.3%}")
+    retuned = report['retuned']
+    if retuned['samples']:
+        worst = retuned['predicted_worst']
+        print(f"  retuned robustly over the estimate and {len(retuned['samples'])} samples: predicted worst "
+              f"{report['index']} {'- (diverged in a sample)' if worst is None else f'{worst:.6g}'}, measured "
+              f"{retuned['measured'][report['index']]:.6g}")
     print(f"  {report['verdict']}")
     print(f"  {improvement_sentence(report['improvement_I1'])}")
     print(f"  run folder {report['run']}")

@@ -24,6 +24,16 @@ def side_record(result: Episodes) -> dict:
     return {**result.indices(), 'diverged': bool(result.diverged[0])}
 
 
+def _robust_words(retuned: dict, index: str) -> str:
+    """How the retuned gains were tuned over the identification's samples, if they were."""
+    if not retuned.get('samples'):
+        return ''
+    worst = retuned['predicted_worst']
+    return (f", robustly (worst case) over it and {len(retuned['samples'])} samples of its parameters: predicted "
+            f"worst {index} {'diverged' if worst is None else f'{worst:.6g}'}, measured "
+            f"{retuned['measured'][index]:.6g}")
+
+
 def verdict(retuned: dict, index: str, tolerance: float) -> tuple[bool, str]:
     """Whether the retuned gains' prediction is the robot: neither side diverged and |measured − predicted| /
     measured of `index` is at most `tolerance`. The reason names the figure that failed."""
@@ -109,7 +119,8 @@ def write_transfer_page(run: RunFolder, report: dict, index: str, figures: dict[
              f"- nominal gains: {markdown_code(report['nominal']['gains'])}, tuned on the URDF",
              f"- identified URDF: {markdown_code(identification['urdf'])} (condition number "
              f"{identification['condition_number']:.4g})",
-             f"- retuned gains: {markdown_code(report['retuned']['gains'])}, tuned on the identified URDF",
+             f"- retuned gains: {markdown_code(report['retuned']['gains'])}, tuned on the identified URDF"
+             + _robust_words(report['retuned'], index),
              f"- bags: {', '.join(markdown_code(bag) for bag in report['bags'])}",
              f"- the verdict: |measured {index} − predicted {index}| / measured {index} of the retuned gains at most "
              f"{report['tolerance']:g}, neither side diverged",
