@@ -77,7 +77,7 @@ def two_link(tmp_path):
 
 def independent_mujoco_episode(mjcf: Path, urdf: Path, motion_path: Path, controller: str, kp, kv, delay: int,
                                period: float, tau: float = 0.0, held: dict | None = None,
-                               duration: float | None = None) -> dict:
+                               duration: float | None = None, servo_limits: dict | None = None) -> dict:
     """One episode of the law on the URDF's model against MuJoCo's robot, from the files alone (the bang-bang
     motion stretched to `duration`, if given)."""
     motion = read_motion(motion_path)
@@ -88,6 +88,9 @@ def independent_mujoco_episode(mjcf: Path, urdf: Path, motion_path: Path, contro
     joints = [robot.joint(name).id for name in names]
     qpos, dofs = robot.jnt_qposadr[joints], robot.jnt_dofadr[joints]
     motors = {int(robot.actuator_trnid[a, 0]): a for a in range(robot.nu)}
+    if servo_limits is not None:  # the robot's servos off, every torque an applied force within the servo's range
+        robot.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
+        motors = {}
     model = Dynamics(reduced_model(urdf, names, held or {}))
     steps = round(period / robot.opt.timestep)
     k_max = round(duration / period)
@@ -116,6 +119,8 @@ def independent_mujoco_episode(mjcf: Path, urdf: Path, motion_path: Path, contro
             if joint in motors:  # MuJoCo bounds ctrl, force and the joint's actuator force itself
                 data.ctrl[motors[joint]] = value / (robot.actuator_gear[motors[joint], 0]
                                                     * robot.actuator_gainprm[motors[joint], 0])
+            elif servo_limits is not None and robot.joint(joint).name in servo_limits:
+                data.qfrc_applied[dof] = np.clip(value, *servo_limits[robot.joint(joint).name])
             elif robot.jnt_actfrclimited[joint]:
                 data.qfrc_applied[dof] = np.clip(value, *robot.jnt_actfrcrange[joint])
             else:
@@ -199,6 +204,25 @@ def test_the_stepwise_loop_on_ddarms_plant_is_the_batch_engines_episode(arm, con
         np.testing.assert_allclose(stepwise.scored(name), batch.scored(name), rtol=1e-11, atol=1e-11)
 
 
+def test_a_robots_servos_are_switched_off_said_and_their_force_range_bounds_the_applied_torque(two_link, tmp_path,
+                                                                                                  capsys):
+    _, urdf, motion = two_link
+    servo = mjcf_with(tmp_path, '<motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-3 3" '
+                                'forcerange="-2 2"/>', '<position name="servo" joint="shoulder" kp="100" '
+                                                       'forcerange="-3 3"/>')
+    spec = robot_spec(urdf, motion, servo, 'computed_torque', 12.0, delay=1, tau=0.1)
+    episode = run_episode(spec)
+    expected = independent_mujoco_episode(servo, urdf, motion, 'computed_torque', spec.kp, spec.kv, 1, spec.period,
+                                          tau=0.1, servo_limits={'shoulder': (-3.0, 3.0), 'elbow': (-1.5, 1.5)})
+    assert_same_as_independent(episode, expected)
+    assert np.max(np.abs(episode.scored('torque')), axis=0).tolist() == [3.0, 1.5]
+    assert main(['episode', '--controller', 'computed_torque', '--urdf', str(urdf), '--motion', str(motion),
+                 '--mjcf', str(servo), '--omega', '12', '--json']) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed['robot']['bypassed_actuators'] == ['servo']
+    assert any("servo actuators ['servo']" in warning and 'switched off' in warning for warning in printed['warnings'])
+
+
 def test_a_diverging_robot_episode_ends_at_the_sample_it_left_the_bounds(two_link, tmp_path):
     _, urdf, motion = two_link
     unlimited = tmp_path / 'unlimited.xml'
@@ -251,9 +275,10 @@ def mjcf_with(tmp_path: Path, old: str, new: str) -> Path:
 
 @pytest.mark.parametrize('edit, words', [
     (('<motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-3 3" forcerange="-2 2"/>',
-      '<position name="servo" joint="shoulder" kp="100"/>'), ["actuator 'servo'", 'fight']),
-    (('<motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-3 3" forcerange="-2 2"/>',
-      '<motor name="a" joint="shoulder"/><motor name="b" joint="shoulder"/>'), ["'shoulder' has two actuators"]),
+      '<motor name="a" joint="shoulder"/><motor name="b" joint="shoulder"/>'), ["'shoulder' has two motors"]),
+    (('<actuator>', '<tendon><fixed name="t"><joint joint="shoulder" coef="1"/></fixed></tendon><actuator>'
+                    '<motor name="pull" tendon="t"/>'),
+     ["actuator 'pull' does not drive one of the controlled joints directly"]),
     (('<option timestep="0.001"', '<option timestep="0.003"'), ['0.01 s is not a whole number', '0.003']),
     (('<joint name="elbow" type="hinge"', '<joint name="elbow" type="slide"'), ["'elbow' is a slide joint",
                                                                                'revolute']),

@@ -51,7 +51,11 @@ def command_episode(args: argparse.Namespace) -> int:
     else:
         result = run_episode(spec)
         transport = 'in-process'
-    robot = {'robot': episode_robot(spec, result.plan).description()} if spec.mjcf is not None else {}
+    robot = {}
+    if spec.mjcf is not None:
+        loaded = episode_robot(spec, result.plan)
+        robot = {'robot': loaded.description()}
+        warnings += loaded.warnings()
     summary = {**result.summary(), **robot, 'locked_joints': dict(model_arm(spec).locked), 'transport': transport,
                'wall_time_s': time.perf_counter() - started,
                'command': shlex.join(['ddarm', *args.argv]), 'warnings': warnings}

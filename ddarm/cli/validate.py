@@ -234,6 +234,7 @@ def command_validate(args: argparse.Namespace) -> int:
         warnings.append(f"the YAML names no motion: validated on the paper's trajectory {predicted_spec.trajectory} "
                         '(assumed; --trajectory gives another)')
     warnings += list(predicted_plan.warnings) + loop_stability_warnings(predicted_spec, "the YAML's gains")
+    warnings += episode_robot(measured_spec, measured_plan).warnings()
     robot_name = Path(measured_spec.mjcf).name
     title = f'{gains.controller} gains of {Path(gains.path).name} on {robot_name}: predicted and measured'
     command = shlex.join(['ddarm', *args.argv])

@@ -22,6 +22,8 @@ from ddarm.errors import DdarmError
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_MAX_VELOCITY, beyond_bounds, saturate
 
 INSTALL_HINT = "MuJoCo is not installed: pip install 'ddarm[mujoco]'"
+# The actuator group (MuJoCo has 31) a servo is moved to and that group switched off (opt.disableactuator).
+BYPASSED_GROUP = 30
 # A period is a whole number of MuJoCo timesteps when it is within this fraction of one of that count.
 WHOLE_STEPS_TOLERANCE = 1e-9
 # The most MuJoCo timesteps one sampling period may take: beyond it the timestep is not meant for this period.
@@ -82,6 +84,7 @@ class Robot:
     actuation: Actuation
     steps_per_period: int
     period: float
+    bypassed: tuple[str, ...] = ()  # the servos switched off (torques are applied as joint forces instead)
 
     @property
     def timestep(self) -> float:
@@ -97,9 +100,16 @@ class Robot:
         mujoco = import_mujoco()
         return {'mjcf': str(self.path), 'engine': f'MuJoCo {mujoco.mj_versionString()}', 'timestep': self.timestep,
                 'integrator': self.integrator, 'steps_per_period': self.steps_per_period,
-                'torque_through': self._torque_through(),
+                'torque_through': self._torque_through(), 'bypassed_actuators': list(self.bypassed),
                 'joint_map': {name: self.model.joint(int(index)).name for name, index in
                               zip(self.joint_names, self._joint_ids())}}
+
+    def warnings(self) -> list[str]:
+        """What the robot was changed in to run the episode: its servos switched off, said once."""
+        if not self.bypassed:
+            return []
+        return [f'the MJCF {self.path} has servo actuators {list(self.bypassed)} (not torque motors): they are '
+                'switched off and the torques applied as joint forces, bounded by their force ranges']
 
     def _torque_through(self) -> str:
         motors = self.actuation.actuator >= 0
@@ -136,9 +146,10 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
 
     `joint_map` names, for a ddarm joint, the MJCF joint that is it, where their names differ. Refused, naming
     what: an MJCF that MuJoCo does not compile; joints that are not exactly the controlled ones (by name and count;
-    a free or ball joint; a hinge for a prismatic joint or a slide for a revolute one); an actuator that is not a
-    torque motor on one of them (a position servo, say, would fight the torques ddarm applies); a period that is
-    not a whole number of its timesteps.
+    a free or ball joint; a hinge for a prismatic joint or a slide for a revolute one); an actuator that does not
+    drive one of them directly, or two motors on one; a period that is not a whole number of its timesteps. A
+    servo (any actuator but a torque motor) would fight the torques ddarm applies: it is switched off
+    (Robot.bypassed, said by Robot.warnings) and its joint's torque applied as a joint force within its force range.
     """
     path = Path(path)
     joint_map = dict(joint_map or {})
@@ -176,27 +187,42 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
         if kind != ('slide' if prismatic_joint else 'hinge'):
             raise RobotError(f'MJCF {path}: joint {ours!r} is a {kind} joint and {name!r} is '
                              f'{"prismatic" if prismatic_joint else "revolute"} in the URDF')
-    motor = {}
+    motor, bypassed, servo_range = {}, [], {}
     for a in range(model.nu):
         actuator = model.actuator(a)
         name = actuator.name or f'#{a}'
         joint = int(model.actuator_trnid[a, 0])
-        is_motor = (int(model.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT)
-                    and int(model.actuator_dyntype[a]) == int(mujoco.mjtDyn.mjDYN_NONE)
+        if int(model.actuator_trntype[a]) != int(mujoco.mjtTrn.mjTRN_JOINT) or joint not in ids:
+            raise RobotError(f'MJCF {path}: actuator {name!r} does not drive one of the controlled joints directly '
+                             '(a tendon, site or slider-crank transmission): ddarm applies one torque per joint')
+        is_motor = (int(model.actuator_dyntype[a]) == int(mujoco.mjtDyn.mjDYN_NONE)
                     and int(model.actuator_gaintype[a]) == int(mujoco.mjtGain.mjGAIN_FIXED)
                     and int(model.actuator_biastype[a]) == int(mujoco.mjtBias.mjBIAS_NONE)
                     and model.actuator_gainprm[a, 0] != 0 and model.actuator_gear[a, 0] != 0)
         if not is_motor:
-            raise RobotError(f'MJCF {path}: actuator {name!r} is not a torque motor on a joint (a position or '
-                             'velocity servo, a muscle, activation dynamics or a bias): held at its control it would '
-                             'fight the torques ddarm applies. Give the robot motors (<motor joint=… gear="1"/>) or '
-                             'no actuators')
+            # A servo (position, velocity; a muscle, a bias) held at its control would fight the torques ddarm
+            # applies: it is switched off, and its force range, the drive's limit, bounds the applied joint force.
+            bypassed.append(name)
+            model.actuator_group[a] = BYPASSED_GROUP
+            if model.actuator_forcelimited[a]:
+                ends = sorted(model.actuator_gear[a, 0] * model.actuator_forcerange[a])
+                servo_range[joint] = (float(ends[0]), float(ends[1]))
+            continue
         if joint in motor:
-            raise RobotError(f'MJCF {path}: joint {model.joint(joint).name!r} has two actuators; ddarm drives one '
+            raise RobotError(f'MJCF {path}: joint {model.joint(joint).name!r} has two motors; ddarm drives one '
                              'torque per joint')
         motor[joint] = a
+    if bypassed:
+        model.opt.disableactuator |= 1 << BYPASSED_GROUP
     actuators = [motor.get(j, -1) for j in ids]
     unbounded = (-math.inf, math.inf)
+
+    def joint_range(j: int) -> tuple[float, float]:
+        low, high = _range(model.jnt_actfrclimited[j], model.jnt_actfrcrange[j])
+        if motor.get(j, -1) < 0 and j in servo_range:
+            low, high = max(low, servo_range[j][0]), min(high, servo_range[j][1])
+        return low, high
+
     actuation = Actuation(
         actuator=np.array(actuators),
         gear=np.array([model.actuator_gear[a, 0] if a >= 0 else 1.0 for a in actuators], dtype=float),
@@ -205,12 +231,12 @@ def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[
                              else unbounded for a in actuators]),
         force_range=np.array([_range(model.actuator_forcelimited[a], model.actuator_forcerange[a]) if a >= 0
                               else unbounded for a in actuators]),
-        joint_range=np.array([_range(model.jnt_actfrclimited[j], model.jnt_actfrcrange[j]) for j in ids]))
+        joint_range=np.array([joint_range(j) for j in ids]))
     return Robot(path=path, model=model, joint_names=tuple(joint_names),
                  qpos_address=np.array([model.jnt_qposadr[j] for j in ids]),
                  dof_address=np.array([model.jnt_dofadr[j] for j in ids]),
                  actuation=actuation, steps_per_period=_steps(path, model, period),
-                 period=period)
+                 period=period, bypassed=tuple(bypassed))
 
 
 def _steps(path: Path, model, period: float) -> int:
