@@ -8,7 +8,7 @@ BROWSER := /usr/bin/chromium /usr/bin/chromedriver
 BROWSER_INSTALL := env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
     chromium chromium-driver
 
-.PHONY: run test
+.PHONY: run test docs
 
 $(BIN)/.installed: setup.py setup.cfg package.xml
 	$(PYTHON) -m venv $(VENV)
@@ -28,3 +28,7 @@ $(BROWSER):
 
 test: $(BIN)/.installed $(BROWSER)
 	$(BIN)/python -m pytest -q
+
+# The pages of docs/ generated from the code (test/test_docs.py fails when they drift from it).
+docs: $(BIN)/.installed
+	$(BIN)/python -m ddarm.cli.docs

@@ -78,7 +78,8 @@ def add_arm_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -> None:
     """The options that define an episode (the spec's defaults, §14); `gains` adds --omega / --kp --kv."""
-    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True,
+                        help='the law: pd_gravity (PD + gravity, Fig. 1) or computed_torque (Fig. 2)')
     add_arm_arguments(parser)
     parser.add_argument('--duration', type=finite, metavar='T',
                         help="T in s (default: the motion's; the paper's is 1); a bang-bang motion is stretched to "

@@ -32,7 +32,8 @@ CHECK_TAU = 0.3
 def add_transfer_parser(commands) -> None:
     parser = commands.add_parser('transfer', help='tune on the URDF, identify the robot from its bags, tune again '
                                                   'and say whether the prediction transfers to the robot')
-    parser.add_argument('--controller', choices=CONTROLLERS, required=True)
+    parser.add_argument('--controller', choices=CONTROLLERS, required=True,
+                        help='the law: pd_gravity (PD + gravity, Fig. 1) or computed_torque (Fig. 2)')
     parser.add_argument('--urdf', required=True, metavar='FILE', help='the arm the nominal gains are tuned on')
     parser.add_argument('--motion', required=True, metavar='FILE.yaml', help='the motion the gains are tuned for')
     add_robot_arguments(parser)

@@ -1,0 +1,20 @@
+"""The generated pages of docs/ are what the code generates: they cannot drift from it unnoticed."""
+
+from ddarm.cli.docs import PAGE, cli_reference
+
+
+def test_docs_cli_md_is_the_argument_parser_as_it_is():
+    assert PAGE.read_text() == cli_reference(), 'docs/cli.md is out of date: run make docs'
+
+
+def test_every_command_and_option_of_the_parser_is_on_the_page():
+    from ddarm.cli.docs import _commands
+    from ddarm.cli.main import build_parser
+
+    page = PAGE.read_text()
+    for name, (_, command) in _commands(build_parser()).items():
+        assert f'## ddarm {name}\n' in page
+        for action in command._actions:
+            for flag in action.option_strings:
+                if flag not in ('-h', '--help'):
+                    assert f'`{flag}' in page, (name, flag)
