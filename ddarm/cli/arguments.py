@@ -126,7 +126,7 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     """--mjcf: a MuJoCo robot as the plant, and --joint-map for its joints' names."""
     parser.add_argument('--mjcf', metavar='FILE',
                         help="the plant is this MuJoCo robot (an MJCF file, or a URDF MuJoCo compiles), its joints "
-                             "the motion's; the law runs on --urdf's model (pip install 'ddarm[mujoco]')")
+                             "the motion's, the law's model the URDF's (pip install 'ddarm[mujoco]')")
     parser.add_argument('--joint-map', type=joint_pair, nargs='+', metavar='URDF_JOINT=MJCF_JOINT',
                         help="the MJCF's name of each joint whose name differs from the URDF's")
 
