@@ -18,3 +18,9 @@ def test_every_command_and_option_of_the_parser_is_on_the_page():
             for flag in action.option_strings:
                 if flag not in ('-h', '--help'):
                     assert f'`{flag}' in page, (name, flag)
+
+
+def test_docs_ros_interface_md_is_the_nodes_as_they_declare_themselves():
+    from ddarm.cli.docs import ROS_PAGE, ros_interface
+
+    assert ROS_PAGE.read_text() == ros_interface(), 'docs/ros-interface.md is out of date: run make docs'

@@ -1,9 +1,10 @@
-"""docs/cli.md, generated from `ddarm`'s argument parser: every command, its options, their defaults and help.
+"""The generated pages of docs/: cli.md from `ddarm`'s argument parser (every command, its options, their
+defaults and help), ros-interface.md from the nodes themselves (topics, QoS, services, parameters).
 
-    .venv/bin/python -m ddarm.cli.docs        # rewrites docs/cli.md (make docs)
+    .venv/bin/python -m ddarm.cli.docs        # rewrites both (make docs)
 
-The page is read from the parser itself (each subparser's actions), never written by hand, so that it cannot
-drift from what `ddarm` takes; test_docs.py fails when the committed page differs from this output.
+Each page is read from what the code declares, never written by hand, so that it cannot drift from it;
+test_docs.py fails when a committed page differs from this output.
 """
 
 from __future__ import annotations
@@ -69,10 +70,107 @@ def cli_reference() -> str:
     return '\n'.join(lines) + '\n'
 
 
+ROS_PAGE = PAGE.with_name('ros-interface.md')
+# The parameter types of rcl_interfaces/ParameterType, by number.
+PARAMETER_TYPES = {1: 'bool', 2: 'integer', 3: 'double', 4: 'string', 5: 'byte[]', 6: 'bool[]', 7: 'integer[]',
+                   8: 'double[]', 9: 'string[]'}
+# What each node needs to start at all; documented as required, not as a default.
+REQUIRED = {'pd_gravity': {'kp': [1.0] * 3, 'kv': [1.0] * 3}, 'computed_torque': {'kp': [1.0] * 3, 'kv': [1.0] * 3},
+            'tuner': {'kp': [1.0] * 3, 'kv': [1.0] * 3}}
+
+
+def _qos(profile) -> str:
+    return (f'{profile.reliability.name.lower()}, {profile.durability.name.lower()}, '
+            f'{profile.history.name.lower().replace("keep_", "keep ")} {profile.depth}')
+
+
+def _range(descriptor) -> str:
+    for ranges in (descriptor.floating_point_range, descriptor.integer_range):
+        if ranges:
+            return f'[{ranges[0].from_value:g}, {ranges[0].to_value:g}]'
+    return ''
+
+
+def _value(value) -> str:
+    if value is None:
+        return 'unset'
+    if isinstance(value, (list, tuple)) or hasattr(value, 'tolist'):
+        return '[' + ', '.join(map(str, list(value))) + ']'
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+def _node_section(title: str, run: str, node, required: dict) -> list[str]:
+    """A node's page section from the node itself: what it publishes, subscribes to, serves and declares."""
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    own = f'{node.get_name()}/'
+    lines = ['', f'## {title}', '', f'`{run}`', '', '| topic | direction | type | QoS |', '|---|---|---|---|']
+    # Node's own properties: the tuner is a GraphDriver, whose `publishers` is a method of its own.
+    endpoints = [(publisher.topic_name, 'publishes', publisher.msg_type, publisher.qos_profile)
+                 for publisher in Node.publishers.fget(node) if publisher.topic_name != '/parameter_events']
+    endpoints += [(subscription.topic_name, 'subscribes', subscription.msg_type, subscription.qos_profile)
+                  for subscription in Node.subscriptions.fget(node) if subscription.topic_name != '/parameter_events']
+    for topic, direction, msg_type, profile in sorted(endpoints, key=lambda e: (e[1], e[0])):
+        kind = f'{msg_type.__module__.split(".")[0]}/{msg_type.__name__}'
+        lines.append(f'| `{topic}` | {direction} | `{kind}` | {_qos(profile)} |')
+    services = sorted((service.srv_name, f'{service.srv_type.__module__.split(".")[0]}/{service.srv_type.__name__}')
+                      for service in Node.services.fget(node) if not service.srv_name.startswith(own))
+    lines += ['', 'Services: ' + (', '.join(f'`{name}` (`{kind}`)' for name, kind in services) or 'none')
+              + '; and the standard parameter services.']
+    lines += ['', '| parameter | type | default | range | read-only | description |', '|---|---|---|---|---|---|']
+    names = sorted(node._parameters)
+    for name, descriptor in zip(names, node.describe_parameters(names)):
+        unset = Parameter(name, Parameter.Type.NOT_SET)
+        default = 'required' if name in required else _value(node.get_parameter_or(name, unset).value)
+        read_only = 'yes' if descriptor.read_only else ''
+        lines.append(f'| `{name}` | {PARAMETER_TYPES.get(descriptor.type, "")} | {_cell(default)} | '
+                     f'{_range(descriptor)} | {read_only} | {_cell(descriptor.description)} |')
+    return lines
+
+
+def ros_interface() -> str:
+    """The nodes' page: each node started with its defaults (and what it requires), in a context of its own."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    from ddarm_control.node import ControllerNode
+    from ddarm_sim.node import PlantNode
+    from ddarm_tuner.node import TunerNode
+
+    context = Context()
+    rclpy.init(context=context, args=[])
+    nodes = []
+    try:
+        def overrides(name):
+            return [Parameter(key, value=value) for key, value in REQUIRED.get(name, {}).items()]
+
+        nodes = [('plant', 'ros2 run ddarm_sim plant',
+                  PlantNode(context=context, parameter_overrides=overrides('plant')))]
+        nodes += [(law, f'ros2 run ddarm_control {law}',
+                   ControllerNode(law, context=context, parameter_overrides=overrides(law)))
+                  for law in ('pd_gravity', 'computed_torque')]
+        nodes.append(('tuner', 'ros2 run ddarm_tuner tuner',
+                      TunerNode(context=context, parameter_overrides=overrides('tuner'))))
+        lines = ['# The ROS 2 interface of ddarm\'s nodes', '',
+                 'Generated from the nodes themselves by `make docs` (`python -m ddarm.cli.docs`): each node started '
+                 'with its defaults, its topics, services and declared parameters read back. Do not edit by hand. '
+                 'A default `required` must be given (kp and kv, or the gains by joint).']
+        for title, run, node in nodes:
+            lines += _node_section(title, run, node, REQUIRED.get(title, {}))
+        return '\n'.join(lines) + '\n'
+    finally:
+        for _, _, node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
 def main() -> int:
     PAGE.parent.mkdir(exist_ok=True)
     PAGE.write_text(cli_reference())
-    print(f'{PAGE}: {len(_commands(build_parser()))} commands')
+    ROS_PAGE.write_text(ros_interface())
+    print(f'{PAGE}: {len(_commands(build_parser()))} commands; {ROS_PAGE}')
     return 0
 
 
