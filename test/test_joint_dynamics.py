@@ -167,3 +167,13 @@ def test_other_urdf_readers_ignore_the_armature_element(tmp_path):
     robot = mujoco.MjModel.from_xml_path(str(urdf))
     assert (robot.dof_damping.tolist(), robot.dof_frictionloss.tolist(), robot.dof_armature.tolist()) == (
         list(DAMPING[:2]), list(FRICTION[:2]), [0.0] * 2)
+
+
+@pytest.mark.parametrize('option', ['--viscous-friction', '--coulomb-friction'])
+def test_friction_options_of_the_wrong_length_are_refused_in_one_line(capsys, option):
+    from ddarm.cli.main import main
+
+    assert main(['episode', '--controller', 'pd_gravity', '--omega', '5', option, '1', '2']) == 2
+    err = capsys.readouterr().err
+    assert f"{option.removeprefix('--').replace('-', '_')} needs 3 values (one per joint)" in err
+    assert 'Traceback' not in err

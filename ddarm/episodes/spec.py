@@ -365,8 +365,12 @@ def fast_friction_warnings(plant: Arm, q0: np.ndarray, v_ref: np.ndarray, spec: 
     max |q̇^d| / C < Δ), M_ii the plant's at the start. Such a joint follows its friction, not the sampled law: the
     law's friction model F̂, computed once per period from a delayed state, can drive it into a limit cycle, and the
     plant's RK4 steps resolve it coarsely, so that its indices change with --substeps."""
-    viscous = plant.model.damping + (0.0 if spec.viscous_friction is None else np.array(spec.viscous_friction))
-    coulomb = plant.model.friction + (0.0 if spec.coulomb_friction is None else np.array(spec.coulomb_friction))
+    try:  # checked here first: this runs before check_episode checks the plant's options
+        given = PlantOptions(viscous_friction=spec.viscous_friction,
+                             coulomb_friction=spec.coulomb_friction).checked(plant.dof)
+    except PlantError as error:
+        raise EpisodeError(str(error)) from error
+    viscous, coulomb = plant_chain(spec).joint_friction(given.viscous_friction, given.coulomb_friction)
     inertia = np.diag(plant.mass_matrix(q0))
     fastest = np.max(np.abs(v_ref), axis=0)
     warnings = []
