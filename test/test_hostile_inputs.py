@@ -485,7 +485,8 @@ def test_a_parameter_file_larger_than_its_bound_is_refused_unread(tmp_path):
 
 def test_a_parameter_file_of_more_values_than_its_bound_is_refused_before_a_node_takes_them(tmp_path, capsys):
     # 3,000,000 items (12 MB, within the byte bound) kept `ddarm controller` starting for over 11 minutes.
-    from ddarm.ros.parameter_files import MAX_PARAMETER_VALUES, parameter_document
+    from ddarm.datafiles import MAX_PARAMETER_VALUES
+    from ddarm.ros.parameter_files import parameter_document
 
     def parameter_file(name: str, items: int):
         path = tmp_path / name

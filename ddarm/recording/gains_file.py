@@ -13,20 +13,14 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from ddarm.control.laws import CONTROLLERS, MAX_DELAY
-from ddarm.datafiles import SAFE_LOADER, DataFileError, is_missing, plain_yaml_problem, read_data_file, unreachable
+from ddarm.datafiles import PARAMETERS_KEY, is_missing, parameter_document, unreachable
 from ddarm.episodes.spec import EpisodeSpec, read_motion_file
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, movable_joints
 from ddarm.physics.plant import NODE_PERIOD_RANGE
 
-PARAMETERS_KEY = 'ros__parameters'
-# Keys and items of one parameter file, as ddarm.ros.parameter_files bounds them (a node of a thousand joints
-# declares tens of thousands).
-MAX_PARAMETER_VALUES = 100_000
 # The controller node's defaults for what a file leaves out (ddarm_control/node.py declares them).
 DEFAULT_DELAY, DEFAULT_PERIOD = 1, 0.01
 # The node's bound on `duration`, s (0: the motion file's own).
@@ -60,26 +54,10 @@ class GainsFile:
 
 
 def _document(path: str) -> dict:
-    """The file's YAML, read as ddarm.ros.parameter_files.parameter_document reads a parameter file: bounded, plain
-    (no anchors or aliases, which rcl refuses too), a mapping."""
-    try:
-        text = read_data_file(path)
-        problem = plain_yaml_problem(text, 'which no parameter file needs', MAX_PARAMETER_VALUES)
-        document = yaml.load(text, Loader=SAFE_LOADER) if problem is None else None
-    except FileNotFoundError:
-        raise GainsFileError(f'gains file {path} does not exist') from None
-    except OSError as error:
-        raise GainsFileError(f'gains file {path} cannot be read: {error.strerror or error}') from error
-    except DataFileError as error:
-        raise GainsFileError(f'gains file {path} cannot be read: {error}') from error
-    except yaml.YAMLError as error:
-        raise GainsFileError(f'gains file {path} is not valid YAML: {" ".join(str(error).split())}') from error
-    if problem is not None:
-        raise GainsFileError(f'gains file {path} {problem}')
-    if not isinstance(document, dict):
-        raise GainsFileError(f'gains file {path} is not a mapping of node names to {PARAMETERS_KEY} (it holds '
-                             f"{'nothing' if document is None else type(document).__name__})")
-    return document
+    """The file's YAML, read as the controller node's parameter file is (ddarm.datafiles.parameter_document)."""
+    if is_missing(unreachable(path)):
+        raise GainsFileError(f'gains file {path} does not exist')
+    return parameter_document(path, GainsFileError, 'gains file')
 
 
 def _law_parameters(path: str, document: dict) -> tuple[str, dict]:

@@ -19,17 +19,12 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 
-import yaml
-
-from ddarm.datafiles import SAFE_LOADER, DataFileError, plain_yaml_problem, read_data_file
+from ddarm.datafiles import PARAMETERS_KEY
+from ddarm.datafiles import parameter_document as read_parameter_document
 from ddarm.errors import DdarmError
 
 ROS_ARGS, END_OF_ROS_ARGS, PARAMS_FILE = '--ros-args', '--', '--params-file'
 PARAM_FLAGS = ('-p', '--param')
-PARAMETERS_KEY = 'ros__parameters'
-# Keys and items of one parameter file: a node of a thousand joints declares tens of thousands. Each value costs rcl
-# and rclpy ~70 µs to hand to the node, so 3,000,000 (12 MB, within the file bound) kept a node starting for minutes.
-MAX_PARAMETER_VALUES = 100_000
 # rcl flags that take the next argument as their value (which is then not a flag of its own).
 _FLAGS_WITH_VALUE = {'-r', '--remap', '-p', '--param', PARAMS_FILE, '-e', '--enclave', '--log-level',
                      '--log-config-file', '--log-file-name'}
@@ -79,24 +74,8 @@ def _node_parameters(mapping: dict, namespace: str = '') -> list[tuple[str, obje
 
 
 def parameter_document(path: str) -> dict:
-    """The file's YAML, read within the bounds of ddarm.datafiles and MAX_PARAMETER_VALUES and, as rcl's parameter
-    parser reads it, without anchors or aliases (a few hundred bytes of aliases expand to gigabytes)."""
-    try:
-        text = read_data_file(path)
-        problem = plain_yaml_problem(text, 'which no parameter file needs',
-                                     MAX_PARAMETER_VALUES)
-        document = yaml.load(text, Loader=SAFE_LOADER) if problem is None else None
-    except (OSError, DataFileError) as error:
-        raise ParameterFileError(f'parameter file {path} cannot be read: {error}') from error
-    except yaml.YAMLError as error:
-        flat = ' '.join(str(error).split())
-        raise ParameterFileError(f'parameter file {path} is not valid YAML: {flat}') from error
-    if problem is not None:
-        raise ParameterFileError(f'parameter file {path} {problem}')
-    if not isinstance(document, dict):
-        raise ParameterFileError(f'parameter file {path} is not a mapping of node names to {PARAMETERS_KEY} '
-                                 f"(it holds {'nothing' if document is None else type(document).__name__})")
-    return document
+    """The file's YAML (ddarm.datafiles.parameter_document), ParameterFileError naming what keeps it from being one."""
+    return read_parameter_document(path, ParameterFileError)
 
 
 def node_keys(path: str) -> list[str]:
