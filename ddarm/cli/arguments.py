@@ -97,13 +97,7 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
                         help='compute delay in samples (default 1; the paper uses 0 for PD + gravity)')
     parser.add_argument('--tau', type=finite, default=0.0,
                         help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
-    limits = parser.add_mutually_exclusive_group()
-    limits.add_argument('--limited', action='store_true',
-                        help="the paper's torque limits: 2 x max nominal torque per joint")
-    limits.add_argument('--urdf-limits', action='store_true',
-                        help="the plant URDF's <limit effort> of each joint")
-    limits.add_argument('--torque-limit', type=finite, nargs='+', metavar='N',
-                        help='torque limits in N m, one per joint')
+    add_torque_limit_arguments(parser, "the plant URDF's <limit effort> of each joint")
     parser.add_argument('--external-torque', type=finite, nargs='+', metavar='PZ',
                         help='constant external joint torques P^z in N m')
     parser.add_argument('--viscous-friction', type=finite, nargs='+', metavar='B')
@@ -149,19 +143,32 @@ def robot_joints(args: argparse.Namespace, joint_names: tuple[str, ...]) -> tupl
     return tuple(mapping.get(name, name) for name in joint_names)
 
 
+def add_torque_limit_arguments(parser: argparse.ArgumentParser, urdf_limits_help: str) -> None:
+    """ddarm's actuator limit, one of three ways (torque_limit reads them)."""
+    limits = parser.add_mutually_exclusive_group()
+    limits.add_argument('--limited', action='store_true',
+                        help="the paper's torque limits: 2 x max nominal torque per joint")
+    limits.add_argument('--urdf-limits', action='store_true', help=urdf_limits_help)
+    limits.add_argument('--torque-limit', type=finite, nargs='+', metavar='N',
+                        help='torque limits in N m, one per joint')
+
+
+def torque_limit(args: argparse.Namespace):
+    """The spec's torque_limit the options of add_torque_limit_arguments give."""
+    if args.torque_limit is not None:
+        return args.torque_limit
+    return 'paper' if args.limited else 'urdf' if args.urdf_limits else 'none'
+
+
 def absolute_path(text: str | None) -> str | None:
     return None if text is None else str(Path(text).expanduser().absolute())
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     """The episode the options define; gains from --omega (the ω rule) or --kp/--kv, else placeholders."""
-    if args.torque_limit is not None:
-        torque_limit = args.torque_limit
-    else:
-        torque_limit = 'paper' if args.limited else 'urdf' if args.urdf_limits else 'none'
     spec = EpisodeSpec(
         controller=args.controller, kp=(1.0,), kv=(1.0,), trajectory=args.trajectory or 1, duration=args.duration,
-        period=args.period, delay=args.delay, tau=args.tau, torque_limit=torque_limit,
+        period=args.period, delay=args.delay, tau=args.tau, torque_limit=torque_limit(args),
         external_torque=args.external_torque, viscous_friction=args.viscous_friction,
         coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps,
         urdf=absolute_path(args.urdf), model_urdf=absolute_path(args.model_urdf), motion=absolute_path(args.motion))
@@ -212,10 +219,15 @@ def new_output_name(text: str) -> str:
     return text
 
 
-def add_output_arguments(parser: argparse.ArgumentParser) -> None:
+def add_run_arguments(parser: argparse.ArgumentParser, command: str = '<command>') -> None:
+    """The run folder a command writes (--runs, --run) and its --json."""
     parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
     parser.add_argument('--run', metavar='NAME', type=new_output_name,
-                        help='run folder name (default: <command>-<law>-<time>)')
+                        help=f'run folder name (default: {command}-<law>-<time>)')
+    parser.add_argument('--json', action='store_true', help='print one JSON object')
+
+
+def add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    add_run_arguments(parser)
     parser.add_argument('--out', metavar='FILE.yaml', type=new_output_path,
                         help='also write the controller YAML here (new file)')
-    parser.add_argument('--json', action='store_true', help='print one JSON object')

@@ -104,37 +104,46 @@ def command_identify(args: argparse.Namespace) -> int:
         raise IdentificationError(f'{out}: no folder {out.parent} to write it in')
     fitted = [read_episode_bag(path) for path in args.bags]
     held_out = [read_episode_bag(path) for path in args.validate]
-    first = fitted[0]
-    for bag in fitted + held_out:
-        if list(bag.joints) != list(first.joints):
-            raise IdentificationError(f'{bag.path} records joints {list(bag.joints)}, {first.path} '
-                                      f'{list(first.joints)}: bags of one arm only')
-    locked = locked_joints(first, args.urdf)
-    try:
-        arm = load_arm(str(Path(args.urdf).absolute()), None, tuple(first.joints), locked)
-    except ModelError as error:
-        raise IdentificationError(f'{error} (the joints of {first.path})') from error
-    fit_data = joined([bag_periods(bag, args.cutoff)[0] for bag in fitted])
-    result = identify(arm, fit_data) if args.payload is None else identify_payload(arm, fit_data, *args.payload)
-    validation = []
-    for bag in held_out:
-        data = bag_periods(bag, args.cutoff)[0]
-        validation.append((str(bag.path), relative_residual(arm, result.estimate, data),
-                           relative_residual(arm, result.estimate, data, moving_only=False)))
-    command = shlex.join(['ddarm', *args.argv])
-    report = identification_report(arm, result, validation, str(out), command)
-    write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
-    report['samples_written'] = []
-    for k, phi in enumerate(parameter_samples(arm, result, args.samples), start=1):
-        sample = out.with_name(f'{out.stem}-sample-{k}{out.suffix}')
-        write_new_text(sample, identified_urdf(arm, phi, urdf_header(report) + f'\nSample {k} of {args.samples}: '
-                                               'base parameters drawn within their standard deviations.'))
-        report['samples_written'].append(str(sample))
+    report = identify_bags(args.urdf, fitted, held_out, out, shlex.join(['ddarm', *args.argv]), args.cutoff,
+                           args.payload, args.samples)
     if args.json:
         print_json(report)
     else:
         print_identification(report)
     return 0
+
+
+def identify_bags(urdf: str, fitted: list[BagEpisode], held_out: list[BagEpisode], out: Path, command: str,
+                  cutoff: float | None = None, payload=None, samples: int = 0) -> dict:
+    """Identify the URDF's arm from the `fitted` bags (with `payload`, LINK and point, its mass instead of the
+    links'), report the residuals on `held_out`, write the identified URDF at `out` and `samples` URDFs drawn within
+    its standard deviations beside it: `ddarm identify`'s work, its report."""
+    first = fitted[0]
+    for bag in fitted + held_out:
+        if list(bag.joints) != list(first.joints):
+            raise IdentificationError(f'{bag.path} records joints {list(bag.joints)}, {first.path} '
+                                      f'{list(first.joints)}: bags of one arm only')
+    locked = locked_joints(first, urdf)
+    try:
+        arm = load_arm(str(Path(urdf).absolute()), None, tuple(first.joints), locked)
+    except ModelError as error:
+        raise IdentificationError(f'{error} (the joints of {first.path})') from error
+    fit_data = joined([bag_periods(bag, cutoff)[0] for bag in fitted])
+    result = identify(arm, fit_data) if payload is None else identify_payload(arm, fit_data, *payload)
+    validation = []
+    for bag in held_out:
+        data = bag_periods(bag, cutoff)[0]
+        validation.append((str(bag.path), relative_residual(arm, result.estimate, data),
+                           relative_residual(arm, result.estimate, data, moving_only=False)))
+    report = identification_report(arm, result, validation, str(out), command)
+    write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
+    report['samples_written'] = []
+    for k, phi in enumerate(parameter_samples(arm, result, samples), start=1):
+        sample = out.with_name(f'{out.stem}-sample-{k}{out.suffix}')
+        write_new_text(sample, identified_urdf(arm, phi, urdf_header(report) + f'\nSample {k} of {samples}: '
+                                               'base parameters drawn within their standard deviations.'))
+        report['samples_written'].append(str(sample))
+    return report
 
 
 def identification_report(arm, result: Identification, validation, out: str, command: str) -> dict:

@@ -10,8 +10,8 @@ import shlex
 import sys
 from pathlib import Path
 
-from ddarm.cli.arguments import (absolute_path, add_robot_arguments, finite, new_output_name, output_path,
-                                 robot_joints, seed, whole_number)
+from ddarm.cli.arguments import (absolute_path, add_robot_arguments, add_run_arguments, finite, robot_joints, seed,
+                                 whole_number)
 from ddarm.cli.output import print_json
 from ddarm.cli.tune import index_name
 from ddarm.cli.validate import error_figure, saturated_joints
@@ -50,10 +50,7 @@ def add_transfer_parser(commands) -> None:
     parser.add_argument('--samples', type=whole_number(0, 100), default=0, metavar='K',
                         help='retune robustly (worst case) over K parameter sets drawn within the identification\'s '
                              'standard deviations, beside the point estimate (0: on the point estimate alone)')
-    parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
-    parser.add_argument('--run', metavar='NAME', type=new_output_name,
-                        help='run folder name (default: transfer-<law>-<time>)')
-    parser.add_argument('--json', action='store_true', help='print one JSON object')
+    add_run_arguments(parser, 'transfer')
     parser.set_defaults(handler=command_transfer, starts_ros=True)
 
 
@@ -107,26 +104,10 @@ def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episod
 
 def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str, samples: int) -> dict:
     """`ddarm identify FIT --validate CHECK --urdf URDF --out OUT --samples K`, its report."""
-    from ddarm.cli.identify import bag_periods, identification_report, locked_joints, urdf_header
-    from ddarm.physics.arm import load_arm
-    from ddarm.physics.identification import identified_urdf, identify, parameter_samples, relative_residual
+    from ddarm.cli.identify import identify_bags
     from ddarm.recording.bags import read_episode_bag
-    from ddarm.recording.runs import write_new_text
 
-    fitted, held_out = read_episode_bag(fit), read_episode_bag(check)
-    arm = load_arm(urdf, None, tuple(fitted.joints), locked_joints(fitted, urdf))
-    result = identify(arm, bag_periods(fitted, None)[0])
-    data = bag_periods(held_out, None)[0]
-    validation = [(str(check), relative_residual(arm, result.estimate, data),
-                   relative_residual(arm, result.estimate, data, moving_only=False))]
-    report = identification_report(arm, result, validation, str(out), command)
-    write_new_text(out, identified_urdf(arm, result.estimate, urdf_header(report)))
-    report['samples_written'] = []
-    for k, phi in enumerate(parameter_samples(arm, result, samples), start=1):
-        sample = out.with_name(f'{out.stem}-sample-{k}{out.suffix}')
-        write_new_text(sample, identified_urdf(arm, phi, urdf_header(report) + f'\nSample {k} of {samples}.'))
-        report['samples_written'].append(str(sample))
-    return report
+    return identify_bags(urdf, [read_episode_bag(fit)], [read_episode_bag(check)], out, command, samples=samples)
 
 
 def command_transfer(args: argparse.Namespace) -> int:

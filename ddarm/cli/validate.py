@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ddarm.cli.arguments import absolute_path, add_robot_arguments, finite, new_output_name, output_path, robot_joints
+from ddarm.cli.arguments import (absolute_path, add_robot_arguments, add_run_arguments, add_torque_limit_arguments,
+                                 finite, robot_joints, torque_limit)
 from ddarm.cli.output import print_json
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
@@ -45,19 +46,11 @@ def add_validate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the paper's motion, for a YAML that names no motion (default 1)")
     parser.add_argument('--tau', type=finite, default=0.0,
                         help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
-    limits = parser.add_mutually_exclusive_group()
-    limits.add_argument('--limited', action='store_true',
-                        help="the paper's torque limits: 2 x max nominal torque per joint")
-    limits.add_argument('--urdf-limits', action='store_true', help="the YAML URDF's <limit effort> of each joint")
-    limits.add_argument('--torque-limit', type=finite, nargs='+', metavar='N',
-                        help='torque limits in N m, one per joint')
+    add_torque_limit_arguments(parser, "the YAML URDF's <limit effort> of each joint")
     parser.add_argument('--ros', action='store_true',
                         help='measure through the ROS graph (the plant node stepping the robot, the controller node, '
                              'lockstep) and keep its bag in the run folder (bags/measured)')
-    parser.add_argument('--runs', default='runs', type=output_path, help='folder of run folders (runs)')
-    parser.add_argument('--run', metavar='NAME', type=new_output_name,
-                        help='run folder name (default: validate-<law>-<time>)')
-    parser.add_argument('--json', action='store_true', help='print one JSON object')
+    add_run_arguments(parser, 'validate')
 
 
 def saturated_joints(result: Episodes) -> list[str]:
@@ -220,11 +213,8 @@ def command_validate(args: argparse.Namespace) -> int:
     if not args.mjcf:
         raise EpisodeError('--mjcf FILE is required: the robot (an MJCF, or a URDF MuJoCo compiles) the YAML is '
                            'validated on')
-    if args.torque_limit is not None:
-        torque_limit = args.torque_limit
-    else:
-        torque_limit = 'paper' if args.limited else 'urdf' if args.urdf_limits else 'none'
-    predicted_spec = validation_spec(gains, trajectory=args.trajectory, tau=args.tau, torque_limit=torque_limit)
+    predicted_spec = validation_spec(gains, trajectory=args.trajectory, tau=args.tau,
+                                     torque_limit=torque_limit(args))
     measured_spec = dataclasses.replace(predicted_spec, mjcf=absolute_path(args.mjcf),
                                         mjcf_joints=robot_joints(args, gains.joint_names))
     check_outputs(None, args.runs, args.run)
