@@ -19,6 +19,7 @@ from ddarm.physics.identification import (IdentificationError, consistency_probl
                                           link_parameters, period_samples, pseudo_inertia, _link_from_theta,
                                           _theta_from_link)
 from ddarm.physics.regressor import base_columns, parameters, regressor, stacked_regressor
+from two_link import URDF, robot_mjcf
 
 ROOT = Path(__file__).resolve().parents[1]
 PANDA_MENAGERIE = ROOT / 'config' / 'robots' / 'panda' / 'panda-menagerie.urdf'
@@ -26,33 +27,8 @@ PANDA_MENAGERIE = ROOT / 'config' / 'robots' / 'panda' / 'panda-menagerie.urdf'
 # The robot: a two-link arm (shoulder about z, elbow about y) whose elbow link carries a payload of 0.8 kg at
 # 0.3 m, with armature, damping and friction its URDF does not have (MuJoCo: RK4 at 1 ms).
 PAYLOAD = 0.8
-ROBOT_MJCF = f"""<mujoco model="two-payload">
-  <option timestep="0.001" integrator="RK4"/>
-  <worldbody>
-    <body name="l1">
-      <joint name="shoulder" type="hinge" axis="0 0 1" armature="0.05" damping="0.4" frictionloss="0.3"/>
-      <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.02 0.02"/>
-      <body name="l2" pos="0.4 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" armature="0.03" damping="0.2" frictionloss="0.1"/>
-        <inertial pos="0.15 0 0" mass="1" diaginertia="0.005 0.01 0.01"/>
-        <body name="payload" pos="0.3 0 0"><inertial pos="0 0 0" mass="{PAYLOAD}" diaginertia="1e-4 1e-4 1e-4"/></body>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-NOMINAL_URDF = """<robot name="two">
-  <link name="base"/>
-  <link name="l1"><inertial><origin xyz="0.2 0 0"/><mass value="2"/>
-    <inertia ixx="0.01" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="l2"><inertial><origin xyz="0.15 0 0"/><mass value="1"/>
-    <inertia ixx="0.005" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="shoulder" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-  <joint name="elbow" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.4 0 0"/>
-    <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-</robot>
-"""
+ROBOT_MJCF = robot_mjcf(' armature="0.05" damping="0.4" frictionloss="0.3"',
+                        ' armature="0.03" damping="0.2" frictionloss="0.1"', payload=PAYLOAD, model='two-payload')
 
 
 def excitation(path: Path, duration: float, phase: float) -> Path:
@@ -80,7 +56,7 @@ def recorded(tmp_path_factory):
     folder = tmp_path_factory.mktemp('identify')
     robot, urdf = folder / 'robot.xml', folder / 'nominal.urdf'
     robot.write_text(ROBOT_MJCF)
-    urdf.write_text(NOMINAL_URDF)
+    urdf.write_text(URDF)
     bags = []
     for name, phase in (('fit', 0.0), ('check', 0.7)):
         motion = excitation(folder / f'{name}.yaml', 6.0, phase)
@@ -246,7 +222,7 @@ def test_too_little_or_too_poorly_excited_data_is_refused_saying_what_to_change(
 
 def test_bags_of_other_joints_or_a_urdf_without_them_are_refused_naming_them(recorded, tmp_path, capsys):
     other = tmp_path / 'other.urdf'
-    other.write_text(NOMINAL_URDF.replace('"elbow"', '"knee"'))
+    other.write_text(URDF.replace('"elbow"', '"knee"'))
     assert main(['identify', str(recorded['fit']), '--urdf', str(other), '--out', str(tmp_path / 'x.urdf')]) == 2
     assert "'elbow'" in capsys.readouterr().err
     assert main(['identify', str(tmp_path / 'missing'), '--urdf', str(recorded['urdf']), '--out',

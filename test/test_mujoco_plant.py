@@ -23,56 +23,22 @@ from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode, gains_
 from ddarm.episodes.stepwise import run_stepwise
 from ddarm.physics.plant import Plant, PlantOptions
 from test_arms import HELD, Dynamics, bang_bang, read_motion, reduced_model
+from two_link import robot_mjcf, write_files
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMS = ROOT / 'config' / 'arms'
 
 # A two-link arm with what MuJoCo models and ddarm's plant does not: armature, damping, frictionloss, a motor with a
 # gear, a control and a force range, an actuator force range on an unactuated joint; RK4 at 1 ms.
-TWO_LINK_MJCF = """<mujoco model="two">
-  <option timestep="0.001" integrator="RK4"/>
-  <worldbody>
-    <body name="l1">
-      <joint name="shoulder" type="hinge" axis="0 0 1" armature="0.02" damping="0.3" frictionloss="0.05"/>
-      <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.02 0.02"/>
-      <body name="l2" pos="0.4 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" armature="0.01" damping="0.1" actuatorfrcrange="-1.5 1.5"/>
-        <inertial pos="0.15 0 0" mass="1" diaginertia="0.005 0.01 0.01"/>
-      </body>
-    </body>
-  </worldbody>
-  <actuator>
-    <motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-3 3" forcerange="-2 2"/>
-  </actuator>
-</mujoco>
-"""
-TWO_LINK_URDF = """<robot name="two">
-  <link name="base"/>
-  <link name="l1"><inertial><origin xyz="0.2 0 0"/><mass value="2"/>
-    <inertia ixx="0.01" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="l2"><inertial><origin xyz="0.15 0 0"/><mass value="1"/>
-    <inertia ixx="0.005" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="shoulder" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-  <joint name="elbow" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.4 0 0"/>
-    <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-</robot>
-"""
-TWO_LINK_MOTION = """joint_names: [shoulder, elbow]
-duration: 0.6
-profile: bang_bang
-start: [-0.4, 0.3]
-goal: [0.5, -0.6]
-"""
+TWO_LINK_MJCF = robot_mjcf(' armature="0.02" damping="0.3" frictionloss="0.05"',
+                           ' armature="0.01" damping="0.1" actuatorfrcrange="-1.5 1.5"',
+                           actuators='<motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-3 3" '
+                                     'forcerange="-2 2"/>')
 
 
 @pytest.fixture
 def two_link(tmp_path):
-    files = {}
-    for name, text in (('two.xml', TWO_LINK_MJCF), ('two.urdf', TWO_LINK_URDF), ('two-motion.yaml', TWO_LINK_MOTION)):
-        files[name] = tmp_path / name
-        files[name].write_text(text)
-    return files['two.xml'], files['two.urdf'], files['two-motion.yaml']
+    return write_files(tmp_path, TWO_LINK_MJCF)
 
 
 def independent_mujoco_episode(mjcf: Path, urdf: Path, motion_path: Path, controller: str, kp, kv, delay: int,

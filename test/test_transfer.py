@@ -20,41 +20,11 @@ from ddarm.cli.main import main
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.indices import INDICES
 from ddarm.recording.gains_file import read_gains_file, validation_spec
+from two_link import MOTION, URDF, robot_mjcf
 
 PAYLOAD = 0.8
-ROBOT_MJCF = f"""<mujoco model="two-payload">
-  <option timestep="0.001" integrator="RK4"/>
-  <worldbody>
-    <body name="l1">
-      <joint name="shoulder" type="hinge" axis="0 0 1" armature="0.05" damping="0.4"/>
-      <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.02 0.02"/>
-      <body name="l2" pos="0.4 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0" armature="0.03" damping="0.2"/>
-        <inertial pos="0.15 0 0" mass="1" diaginertia="0.005 0.01 0.01"/>
-        <body name="payload" pos="0.3 0 0"><inertial pos="0 0 0" mass="{PAYLOAD}" diaginertia="1e-4 1e-4 1e-4"/></body>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-URDF = """<robot name="two">
-  <link name="base"/>
-  <link name="l1"><inertial><origin xyz="0.2 0 0"/><mass value="2"/>
-    <inertia ixx="0.01" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="l2"><inertial><origin xyz="0.15 0 0"/><mass value="1"/>
-    <inertia ixx="0.005" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="shoulder" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-  <joint name="elbow" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.4 0 0"/>
-    <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-</robot>
-"""
-MOTION = """joint_names: [shoulder, elbow]
-duration: 0.6
-profile: bang_bang
-start: [-0.4, 0.3]
-goal: [0.5, -0.6]
-"""
+ROBOT_MJCF = robot_mjcf(' armature="0.05" damping="0.4"', ' armature="0.03" damping="0.2"', payload=PAYLOAD,
+                        model='two-payload')
 RUN_FILES = ('nominal.yaml', 'excite.yaml', 'bags/fit', 'bags/check', 'identified.urdf', 'retuned.yaml',
              'transfer.md', 'transfer.html', 'summary.json', 'errors-nominal.png', 'errors-retuned.png')
 

@@ -14,6 +14,7 @@ from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec, arm_joints, gains_from_omega
 from ddarm.recording.gains_file import read_gains_file, validation_spec
 from ddarm.recording.runs import controller_yaml
+from two_link import robot_mjcf, write_files
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5 = ROOT / 'config' / 'arms' / 'ur5'
@@ -21,38 +22,7 @@ PANDA = ROOT / 'config' / 'arms' / 'panda'
 PANDA_ROBOT = ROOT / 'config' / 'robots' / 'panda' / 'panda.xml'
 
 # A two-link robot with nothing that bounds its torques (no actuator, no force range), and ddarm's model of it.
-TWO_LINK_MJCF = """<mujoco model="two">
-  <option timestep="0.001"/>
-  <worldbody>
-    <body name="l1">
-      <joint name="shoulder" type="hinge" axis="0 0 1"/>
-      <inertial pos="0.2 0 0" mass="2" diaginertia="0.01 0.02 0.02"/>
-      <body name="l2" pos="0.4 0 0">
-        <joint name="elbow" type="hinge" axis="0 1 0"/>
-        <inertial pos="0.15 0 0" mass="1" diaginertia="0.005 0.01 0.01"/>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-TWO_LINK_URDF = """<robot name="two">
-  <link name="base"/>
-  <link name="l1"><inertial><origin xyz="0.2 0 0"/><mass value="2"/>
-    <inertia ixx="0.01" iyy="0.02" izz="0.02" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="l2"><inertial><origin xyz="0.15 0 0"/><mass value="1"/>
-    <inertia ixx="0.005" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="shoulder" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-  <joint name="elbow" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.4 0 0"/>
-    <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="100" velocity="10"/></joint>
-</robot>
-"""
-TWO_LINK_MOTION = """joint_names: [shoulder, elbow]
-duration: 0.6
-profile: bang_bang
-start: [-0.4, 0.3]
-goal: [0.5, -0.6]
-"""
+TWO_LINK_MJCF = robot_mjcf(option='<option timestep="0.001"/>')
 
 
 def tuned_spec(urdf: Path, motion: Path, omega: float, controller: str = 'computed_torque') -> EpisodeSpec:
@@ -225,11 +195,7 @@ def test_options_that_do_not_fit_are_refused(capsys, tmp_path):
 
 @pytest.fixture
 def two_link(tmp_path):
-    files = []
-    for name, text in (('two.xml', TWO_LINK_MJCF), ('two.urdf', TWO_LINK_URDF), ('two-motion.yaml', TWO_LINK_MOTION)):
-        files.append(tmp_path / name)
-        files[-1].write_text(text)
-    return files
+    return write_files(tmp_path, TWO_LINK_MJCF)
 
 
 def test_a_robot_that_diverges_says_so_beside_its_numbers(capsys, tmp_path, two_link):
