@@ -211,6 +211,15 @@ def relative_residual(arm: Arm, phi: np.ndarray, data: PeriodSamples, moving_onl
     return np.sqrt(np.sum(errors ** 2, axis=0) / count) / np.where(scale > 0, scale, 1.0)
 
 
+def _fitted_rows(arm: Arm, data: PeriodSamples) -> tuple[np.ndarray, np.ndarray]:
+    """The regressor's rows and the torques the fit takes: each joint's where it moves (`moving`), each scaled by
+    its joint's torque RMS (`_weights`)."""
+    weights = np.tile(_weights(data.torque), len(data))
+    rows = moving(data).ravel()
+    regressor = stacked_regressor(arm, data.q, data.v, data.a)
+    return (regressor / weights[:, None])[rows], (data.torque.ravel() / weights)[rows]
+
+
 def structural_base_count(arm: Arm, samples: int = 200) -> int:
     """How many base parameters the arm has: those of data that excites everything (random states, seeded)."""
     rng = np.random.default_rng(0)
@@ -226,10 +235,7 @@ def identify(arm: Arm, data: PeriodSamples, max_condition: float = MAX_CONDITION
     n = arm.dof
     if data.torque.shape[1:] != (n,):
         raise IdentificationError(f'the data has {data.torque.shape[1:]} torques per sample; the arm {n} joints')
-    regressor = stacked_regressor(arm, data.q, data.v, data.a)
-    weights = np.tile(_weights(data.torque), len(data))
-    rows = moving(data).ravel()
-    weighted, target = (regressor / weights[:, None])[rows], (data.torque.ravel() / weights)[rows]
+    weighted, target = _fitted_rows(arm, data)
     columns = base_columns(weighted)
     structural = structural_base_count(arm)
     if len(columns) < structural:
@@ -308,12 +314,9 @@ def identify_payload(arm: Arm, data: PeriodSamples, link: str, point, max_condit
     n = arm.dof
     joint, per_kilogram = point_mass_parameters(arm, link, point)
     prior = parameters(arm)
-    regressor = stacked_regressor(arm, data.q, data.v, data.a)
-    weights = np.tile(_weights(data.torque), len(data))
-    rows = moving(data).ravel()
-    weighted = (regressor / weights[:, None])[rows]
+    weighted, target = _fitted_rows(arm, data)
     links = LINK_SIZE * n
-    target = (data.torque.ravel() / weights)[rows] - weighted[:, :links] @ prior[:links]
+    target = target - weighted[:, :links] @ prior[:links]
     columns = np.column_stack([weighted[:, links:], weighted[:, LINK_SIZE * joint:LINK_SIZE * (joint + 1)]
                                @ per_kilogram])
     if len(data) < MIN_SAMPLES_PER_PARAMETER * columns.shape[1]:
