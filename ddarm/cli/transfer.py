@@ -85,6 +85,20 @@ def _tuned(args: argparse.Namespace, template: EpisodeSpec, label: str, scenario
                     progress=bar.update, scenarios=scenarios)
 
 
+def _tuned_gains(args: argparse.Namespace, run, template: EpisodeSpec, phase: str, command: str, scenarios=None):
+    """The search on `template` (_tuned) and its gains written to the run folder as `<phase>.yaml`, as `ddarm tune
+    --out` writes them: the YAML's path and the tuning."""
+    from ddarm.tuning.outputs import write_gains
+    from ddarm.tuning.tune import with_gains
+
+    tuning = _tuned(args, template, f'{phase} search', scenarios)
+    kp, kv = tuning.search.kp, tuning.search.kv
+    (path, *_) = write_gains(run, kp, kv, with_gains(template, kp, kv),
+                             f'{args.index} = {tuning.best[args.index]!r} on {template.urdf}\nfrom: {command}',
+                             name=f'{phase}.yaml')
+    return Path(path), tuning
+
+
 def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episodes, Episodes]:
     """The controller YAML as `ddarm validate` runs it: the prediction on its URDF, the measurement on the robot
     (in-process). Returns the phase's record and both episodes."""
@@ -111,7 +125,7 @@ def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str, samp
 
 
 def command_transfer(args: argparse.Namespace) -> int:
-    from ddarm.tuning.outputs import check_outputs, run_folder, write_gains
+    from ddarm.tuning.outputs import check_outputs, run_folder
     from ddarm.tuning.transfer import improvement, verdict, write_transfer_page
     from ddarm.tuning.tune import with_gains
 
@@ -142,11 +156,7 @@ def command_transfer(args: argparse.Namespace) -> int:
         excite = run.write_text('excite.yaml', excitation.text)
         # 1. the nominal tuning on the URDF
         _say(args, f'1/7 tuning {law} on {args.urdf} ({args.budget} episodes, index {args.index}) …')
-        nominal_tuning = _tuned(args, template, 'nominal search')
-        nominal_spec = with_gains(template, nominal_tuning.search.kp, nominal_tuning.search.kv)
-        nominal_gains = Path(write_gains(run, nominal_tuning.search.kp, nominal_tuning.search.kv, nominal_spec,
-                                         f'{args.index} = {nominal_tuning.best[args.index]!r} on {args.urdf}\n'
-                                         f'from: {command}', name='nominal.yaml')[0])
+        nominal_gains, _ = _tuned_gains(args, run, template, 'nominal', command)
         # 2. the nominal gains on the robot
         _say(args, '2/7 validating the nominal gains on the robot …')
         nominal, *nominal_episodes = _validated(nominal_gains, args)
@@ -173,11 +183,7 @@ def command_transfer(args: argparse.Namespace) -> int:
 
             scenarios = scenario_grid(retuned_template, urdfs=[str(identified), *identification['samples_written']])
         _say(args, f'6/7 tuning {law} on identified.urdf{f" and {args.samples} samples" if args.samples else ""} …')
-        retuned_tuning = _tuned(args, retuned_template, 'retuned search', scenarios)
-        retuned_spec = with_gains(retuned_template, retuned_tuning.search.kp, retuned_tuning.search.kv)
-        retuned_gains = Path(write_gains(run, retuned_tuning.search.kp, retuned_tuning.search.kv, retuned_spec,
-                                         f'{args.index} = {retuned_tuning.best[args.index]!r} on {identified}\n'
-                                         f'from: {command}', name='retuned.yaml')[0])
+        retuned_gains, retuned_tuning = _tuned_gains(args, run, retuned_template, 'retuned', command, scenarios)
         # 7. the retuned gains on the robot
         _say(args, '7/7 validating the retuned gains on the robot …')
         retuned, *retuned_episodes = _validated(retuned_gains, args)
