@@ -20,7 +20,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages',
          [f'resource/{name}' for name in (PACKAGE, 'ddarm_sim', 'ddarm_control', 'ddarm_tuner')]),
-        ('lib/ddarm_sim', ['scripts/plant']),
+        ('lib/ddarm_sim', ['scripts/plant', 'scripts/robot']),
         ('lib/ddarm_control', ['scripts/pd_gravity', 'scripts/computed_torque']),
         ('lib/ddarm_tuner', ['scripts/tuner']),
         (f'share/{PACKAGE}', ['package.xml']),

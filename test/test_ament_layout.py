@@ -13,6 +13,7 @@ from std_srvs.srv import Trigger
 
 ROOT = Path(__file__).resolve().parent.parent
 EXECUTABLES = [('ddarm_sim', 'plant', 'plant.yaml', '/plant/reset'),
+               ('ddarm_sim', 'robot', 'robot.yaml', '/robot/status'),
                ('ddarm_control', 'pd_gravity', 'pd_gravity.yaml', '/pd_gravity/reset'),
                ('ddarm_control', 'computed_torque', 'computed_torque.yaml', '/computed_torque/reset')]
 
@@ -63,7 +64,8 @@ def test_ros2_run_resolves_and_starts_each_node(colcon_install, package, executa
     assert path == install / 'lib' / package / executable
     assert os.access(path, os.X_OK)
     process = subprocess.Popen([str(path), '--ros-args', '--params-file', str(ROOT / 'config' / parameters)],
-                               env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                               env=environment, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               cwd=ROOT)  # the files the parameter files name are relative to the checkout
     try:
         wait_for_service(service)
         assert process.poll() is None
@@ -81,7 +83,7 @@ def test_the_package_and_its_config_are_installed_under_share(colcon_install):
     install, _ = colcon_install
     for name in ('ddarm', 'ddarm_sim', 'ddarm_control', 'ddarm_tuner'):
         assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / name).is_file()
-    for name in ('ddarm.urdf', 'plant.yaml', 'pd_gravity.yaml', 'computed_torque.yaml', 'tuner.yaml'):
+    for name in ('ddarm.urdf', 'plant.yaml', 'robot.yaml', 'pd_gravity.yaml', 'computed_torque.yaml', 'tuner.yaml'):
         assert (install / 'share' / 'ddarm' / 'config' / name).is_file()
 
 

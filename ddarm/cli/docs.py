@@ -76,7 +76,8 @@ PARAMETER_TYPES = {1: 'bool', 2: 'integer', 3: 'double', 4: 'string', 5: 'byte[]
                    8: 'double[]', 9: 'string[]'}
 # What each node needs to start at all; documented as required, not as a default.
 REQUIRED = {'pd_gravity': {'kp': [1.0] * 3, 'kv': [1.0] * 3}, 'computed_torque': {'kp': [1.0] * 3, 'kv': [1.0] * 3},
-            'tuner': {'kp': [1.0] * 3, 'kv': [1.0] * 3}}
+            'tuner': {'kp': [1.0] * 3, 'kv': [1.0] * 3},
+            'robot': {'mjcf': str(PAGE.parent.parent / 'config' / 'robots' / 'panda' / 'panda.xml')}}
 
 
 def _qos(profile) -> str:
@@ -137,6 +138,7 @@ def ros_interface() -> str:
 
     from ddarm_control.node import ControllerNode
     from ddarm_sim.node import PlantNode
+    from ddarm_sim.robot import RobotNode
     from ddarm_tuner.node import TunerNode
 
     context = Context()
@@ -147,7 +149,10 @@ def ros_interface() -> str:
             return [Parameter(key, value=value) for key, value in REQUIRED.get(name, {}).items()]
 
         nodes = [('plant', 'ros2 run ddarm_sim plant',
-                  PlantNode(context=context, parameter_overrides=overrides('plant')))]
+                  PlantNode(context=context, parameter_overrides=overrides('plant'))),
+                 # A lifecycle node: its topics are made at configure, which autostart does at launch.
+                 ('robot', 'ros2 run ddarm_sim robot --ros-args -p mjcf:=FILE',
+                  RobotNode(context=context, parameter_overrides=overrides('robot')))]
         nodes += [(law, f'ros2 run ddarm_control {law}',
                    ControllerNode(law, context=context, parameter_overrides=overrides(law)))
                   for law in ('pd_gravity', 'computed_torque')]

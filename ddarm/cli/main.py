@@ -14,7 +14,7 @@ import sys
 from ddarm.cli.arguments import (add_episode_arguments, add_output_arguments, add_robot_arguments, finite, new_output_path,
                                  seed, whole_number)
 from ddarm.cli.episode import command_episode
-from ddarm.cli.nodes import command_controller, command_plant, command_tuner
+from ddarm.cli.nodes import command_controller, command_plant, command_robot, command_tuner
 from ddarm.cli.omega import command_omega
 from ddarm.cli.output import terminal_streams
 from ddarm.cli.reproduce import command_reproduce, job_count
@@ -130,6 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
     score.set_defaults(handler=command_score)
     plant = commands.add_parser('plant', help='start the plant node (then --ros-args ...)')
     plant.set_defaults(handler=command_plant, takes_ros_arguments=True)
+    robot = commands.add_parser('robot', help='start a MuJoCo robot behind ros2_control\'s topics, a lifecycle node '
+                                             '(then --ros-args -p mjcf:=FILE ...)')
+    robot.set_defaults(handler=command_robot, takes_ros_arguments=True)
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
     controller.add_argument('law', choices=CONTROLLERS)
     controller.set_defaults(handler=command_controller, takes_ros_arguments=True)

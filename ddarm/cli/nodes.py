@@ -1,4 +1,4 @@
-"""`ddarm plant`, `ddarm controller LAW`, `ddarm tuner`: the ROS 2 nodes, started with the --ros-args given."""
+"""`ddarm plant`, `ddarm robot`, `ddarm controller LAW`, `ddarm tuner`: the ROS 2 nodes, started with the --ros-args given."""
 
 from __future__ import annotations
 
@@ -9,6 +9,12 @@ def command_plant(args: argparse.Namespace) -> int:
     from ddarm_sim.node import main as plant_main
 
     return plant_main(['ddarm-plant', *args.ros_arguments])
+
+
+def command_robot(args: argparse.Namespace) -> int:
+    from ddarm_sim.robot import main as robot_main
+
+    return robot_main(['ddarm-robot', *args.ros_arguments])
 
 
 def command_controller(args: argparse.Namespace) -> int:

@@ -140,6 +140,15 @@ def _read_model(path: Path):
         raise RobotError(f'MJCF {path} is not a model MuJoCo compiles: {message}') from None
 
 
+def robot_joints(path: str | Path) -> dict[str, bool]:
+    """The hinge and slide joints of the MJCF at `path`, in MuJoCo's order: name -> prismatic (a slide)."""
+    mujoco = import_mujoco()
+    model = _read_model(Path(path))
+    kinds = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    return {model.joint(j).name: int(model.jnt_type[j]) == kinds[1] for j in range(model.njnt)
+            if int(model.jnt_type[j]) in kinds}
+
+
 def load_robot(path: str | Path, joint_names: tuple[str, ...], prismatic: tuple[bool, ...], period: float,
                joint_map: dict[str, str] | None = None) -> Robot:
     """The MuJoCo model at `path` as the plant of an arm whose controlled joints are `joint_names` (ddarm's order).
