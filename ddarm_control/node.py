@@ -9,6 +9,11 @@ Float64MultiArray a ros2_control forward_command_controller on effort interfaces
 On a timer (robot mode) the node guards the robot as far as the URDF tells it: every effort clamped to the
 joint's effort limit, a state beyond the position or velocity limits (or moving faster than they allow) refused,
 and stamps and clock jumps bounded so that none blocks the commands after it (`ddarm.ros.interface.RobotLimits`).
+
+Lifecycle (a managed node): configure reads the parameters, loads the URDF and the motion, builds and compiles the
+law and makes the topics, timers and the ~/reset and ~/status services; activate lets the commands flow; deactivate
+stops them (no command at all, states and ticks ignored) and the next activate starts a fresh motion; cleanup frees
+it all. `autostart` (the default) configures and activates at launch, refusing the node if configure fails.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -41,10 +46,11 @@ from ddarm.motion.programmed import MotionError, nominal_torque
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.plant import NODE_PERIOD_RANGE
+from ddarm.ros.lifecycle import ManagedNode
 from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EFFORT_COMMAND_TOPIC, GAIN_KEYS,
                                      JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC, ROBOT_COMMAND_QOS,
                                      ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotLimits, RobotState, descriptor,
-                                     effort_array_msg, gain_parameter, given_gains, plain_parameters,
+                                     effort_array_msg, gain_joint, gain_parameter, given_gains, plain_parameters,
                                      proposed_values, read_joint_state, read_reference, read_robot_state,
                                      refuse_undeclared_parameters, undeclared_overrides,
                                      unknown_parameters_reason)
@@ -98,13 +104,16 @@ def motion_reference(model: Arm, file: MotionFile, period: float, duration: floa
     return Reference(times, q, v, a, nominal_torque(model, motion, times))
 
 
-class ControllerNode(Node):
+class ControllerNode(ManagedNode):
     """One law behind ROS: the command for sample n from the state of sample n - d and the reference at t_n.
 
     sampling `state`: each command is a JointState stamped with the sample it applies to, carrying
     names and effort; a state at t = 0 starts a new episode (the delay buffer is cleared), as does
     ~/reset. sampling `timer`: sample 0 is the first tick with a state, the reference is the
     `motion` file's, and a tick whose latest state is older than one period sends nothing.
+
+    A managed node: the parameters are declared at construction (the gains by joint at configure, as the joints
+    come from the motion file or the URDF), everything else is made at configure and freed at cleanup.
     """
 
     def __init__(self, law: str, **kwargs) -> None:
@@ -119,6 +128,59 @@ class ControllerNode(Node):
                          'stale_ticks': 0, 'future_ticks': 0, 'missed_ticks': 0, 'clock_faults': 0,
                          'non_finite_commands': 0, 'clamped_commands': 0}
         self._declare_parameters()
+        self.parameter_overrides = list(kwargs.get('parameter_overrides') or ())
+        self.configure_error: Exception | None = None
+        self.configured = False  # the parameter callbacks check and apply changes once configure built the law
+        self.active = False  # commands flow only while active
+        self.autostarting = False
+        self.configurations = 0
+        self.ignored_messages = 0  # states that arrived while the node was not active
+        self.joints: list[str] = []
+        self.known_joints: list[str] = []  # the joints the undeclared-parameter refusal names, once known
+        # Counts every change of what the commands are computed from (parameters, reference, reset), so a
+        # driver can tell whether anyone touched the controller while an episode ran.
+        self.configuration = 0
+        self.ticks = 0
+        self._forget_configuration()
+        refuse_undeclared_parameters(self, law, self.known_joints, self._one_gain_form)
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        if self.get_parameter('autostart').value:
+            self.autostarting = True
+            try:
+                for transition, name in ((self.trigger_configure, 'configure'), (self.trigger_activate, 'activate')):
+                    if transition() != TransitionCallbackReturn.SUCCESS:
+                        self.destroy_node()  # refused: gone from the graph now, not when collected
+                        raise self.configure_error or ControllerError(f'the controller did not {name}')
+            finally:
+                self.autostarting = False
+        else:
+            # The gains by joint are declared at configure; any other name not declared is refused now.
+            unknown = [name for name in undeclared_overrides(self, self.parameter_overrides)
+                       if gain_joint(name) is None]
+            if unknown:
+                self.destroy_node()
+                raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, ())}')
+
+    # Lifecycle ---------------------------------------------------------------------------------
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self._configure()
+        except Exception as error:  # kept and, at autostart, raised from the constructor as it is
+            self._release()
+            self.configure_error = error
+            if not self.autostarting:
+                self.get_logger().error(f'configure refused: {error}')
+            return TransitionCallbackReturn.FAILURE
+        self.configure_error = None
+        return TransitionCallbackReturn.SUCCESS
+
+    def _configure(self) -> None:
+        law = self.law_name
+        if self.configurations:  # configured again after a cleanup: a change a driver must be able to see
+            self.configuration += 1
+        self.configurations += 1
         values = proposed_values(self, ())
         # Real time against a busy core: the process's priority and cores, refused at start if the OS will not.
         self.scheduling = NodeScheduling(values)
@@ -128,10 +190,11 @@ class ControllerNode(Node):
         if self.sampling == 'timer' and self.motion_file is None:
             raise ControllerError("sampling 'timer' needs a motion file (motion): the reference comes from it")
         self.model, self.joints = self._model(values)
+        self.known_joints[:] = self.joints
         self.command_encoder = JointStateEncoder(self.joints)
         self.chain = chain_from_model(self.model.model)
         self._declare_gains()
-        unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
+        unknown = undeclared_overrides(self, self.parameter_overrides)
         if unknown:
             raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, self.joints)}')
         values = proposed_values(self, ())
@@ -150,19 +213,12 @@ class ControllerNode(Node):
         if self.sampling == 'timer':
             self._set_reference(motion_reference(self.model, self.motion_file, self.period,
                                                  self.get_parameter('duration').value))
-        # Counts every change of what the commands are computed from (parameters, reference, reset), so a
-        # driver can tell whether anyone touched the controller while an episode ran.
-        self.configuration = 0
         self.last_sample: int | None = None
         self.waiting: deque = deque(maxlen=MAX_WAITING_STATES)
         # Timer mode: the latest state, the node's time of sample 0 (ns) and the last tick's sample.
         self.latest_state: RobotState | None = None
         self.start_time: int | None = None
         self.tick_sample: int | None = None
-        self.ticks = 0
-        refuse_undeclared_parameters(self, law, self.joints, self._one_gain_form)
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
 
         timer = self.sampling == 'timer'
         try:
@@ -191,12 +247,72 @@ class ControllerNode(Node):
             if timer else None
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
         self.status_service = self.create_service(Trigger, '~/status', self._on_status)
+        self.configured = True
         self.get_logger().info(self._describe())
         unbounded = [] if self.limits is None else [joint for joint, bound in zip(self.joints, self.limits.velocity)
                                                     if bound == math.inf]
         if unbounded:
             self.get_logger().warning(f'the URDF gives no velocity limit > 0 for {unbounded}: their states are not '
                                       'checked for velocity, nor for moves too fast between states')
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._fresh_motion()
+        self.active = True
+        if not self.autostarting:
+            self.get_logger().info('activated: the commands flow, a fresh motion from the next state')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.active = False
+        self._fresh_motion()
+        self.configuration += 1
+        self.get_logger().info('deactivated: no command until activated again (states and ticks ignored)')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        """Back to unconfigured: the topics, timers and services made at configure destroyed, the model freed."""
+        self.active = False
+        self.configured = False
+        for name, destroy in (('command_publisher', self.destroy_publisher),
+                              ('diagnostics_publisher', self.destroy_publisher),
+                              ('state_subscription', self.destroy_subscription),
+                              ('reference_subscription', self.destroy_subscription),
+                              ('timer', self.destroy_timer), ('watchdog', self.destroy_timer),
+                              ('reset_service', self.destroy_service), ('status_service', self.destroy_service)):
+            entity = getattr(self, name, None)
+            if entity is not None:
+                destroy(entity)
+        self._forget_configuration()
+
+    def _forget_configuration(self) -> None:
+        """What configure makes, unset: the node unconfigured."""
+        for name in ('command_publisher', 'diagnostics_publisher', 'state_subscription', 'reference_subscription',
+                     'timer', 'watchdog', 'reset_service', 'status_service', 'model', 'chain', 'controller',
+                     'command_encoder', 'motion_file', 'limits', 'reference', 'reference_gravity', 'latest_state',
+                     'start_time', 'tick_sample', 'last_sample'):
+            setattr(self, name, None)
+        self.gains_ready = False
+        self.waiting = deque(maxlen=MAX_WAITING_STATES)
+
+    def _fresh_motion(self) -> None:
+        """The next command starts a new motion: the delay buffer cleared, the states held forgotten."""
+        self.controller.reset()
+        self.last_sample = None
+        self.waiting.clear()
+        self.latest_state = None
+        self.start_time = self.tick_sample = None
 
     def _declare_parameters(self) -> None:
         double_array = Parameter.Type.DOUBLE_ARRAY
@@ -255,6 +371,8 @@ class ControllerNode(Node):
                                                'the node\'s clock jumps further, ahead or back, between two ticks, '
                                                'the motion goes on from the next sample (re-anchored)',
                                                floating=(0.0, 3600.0))),
+            ('autostart', True, descriptor('configure and activate at launch (else wait for the lifecycle '
+                                           'services)', read_only=True)),
             *scheduling_declarations(),
         ]
         for name, default, described in declared:
@@ -264,6 +382,8 @@ class ControllerNode(Node):
         """gains.<joint>.p and gains.<joint>.d for each controlled joint: ros2_controllers' gains by joint name."""
         for joint in self.joints:
             for key, gain in zip(GAIN_KEYS, ('K_p', 'K_v')):
+                if self.has_parameter(gain_parameter(joint, key)):  # declared at an earlier configure
+                    continue
                 self.declare_parameter(gain_parameter(joint, key), 0.0, descriptor(
                     f'{gain} of {joint}, > 0 (0 = unset: kp/kv or omega give the gains)', floating=(0.0, MAX_GAIN)))
 
@@ -349,6 +469,8 @@ class ControllerNode(Node):
                                       self.model.dof) for name in ('viscous_friction', 'coulomb_friction'))
 
     def _check_parameters(self, changes) -> SetParametersResult:
+        if not self.configured:  # configure checks them all
+            return SetParametersResult(successful=True)
         values = proposed_values(self, changes)
         try:
             effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
@@ -368,6 +490,8 @@ class ControllerNode(Node):
         return SetParametersResult(successful=refused is None, reason=refused or '')
 
     def _apply_parameters(self, changes) -> None:
+        if not self.configured:  # configure reads them
+            return
         values = proposed_values(self, ())
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
@@ -420,7 +544,7 @@ class ControllerNode(Node):
         self._set_reference(reference)
         self.configuration += 1
         self.get_logger().info(f'reference of {len(self.reference.times)} samples; {self._describe()}')
-        while self.waiting:
+        while self.active and self.waiting:
             self._command(self.waiting.popleft())
 
     def _on_reset(self, request, response):
@@ -429,11 +553,7 @@ class ControllerNode(Node):
         In timer mode the state held is forgotten too: the motion starts again from its start at the next tick
         with a fresh state, whatever stamps came before.
         """
-        self.controller.reset()
-        self.last_sample = None
-        self.waiting.clear()
-        self.latest_state = None
-        self.start_time = self.tick_sample = None
+        self._fresh_motion()
         self.configuration += 1
         return self._on_status(request, response)
 
@@ -458,6 +578,9 @@ class ControllerNode(Node):
     # sampling: state ---------------------------------------------------------------------------
 
     def _on_state(self, data: bytes) -> None:
+        if not self.active:
+            self.ignored_messages += 1
+            return
         try:
             state = read_joint_state(decode_joint_state(data), self.joints, self.period)
         except MessageError as error:
@@ -504,6 +627,8 @@ class ControllerNode(Node):
         return torque
 
     def _publish(self, torque: np.ndarray, t: float) -> None:
+        if not self.active:  # never a command from an inactive node
+            return
         if self.command_type == 'joint_state':
             self.command_publisher.publish(self.command_encoder.encode(t, effort=torque))
         else:
@@ -515,6 +640,9 @@ class ControllerNode(Node):
         """Keep the latest state of our joints (others in the message ignored); refuse one that cannot be used:
         malformed, stamped before the state held or too far ahead of the node's clock, or beyond the robot's
         limits (`RobotLimits.refusal`). A refused state is never held: the ticks go on with the state before."""
+        if not self.active:
+            self.ignored_messages += 1
+            return
         try:
             state = read_robot_state(msg, self.joints)
         except MessageError as error:
@@ -567,6 +695,8 @@ class ControllerNode(Node):
         """
         now = self.get_clock().now().nanoseconds
         self.ticks += 1
+        if not self.active:  # counted, nothing sent
+            return
         self._drop_state_ahead(now)
         state = self.latest_state
         if state is None:
@@ -634,7 +764,7 @@ class ControllerNode(Node):
 
     def _watch(self) -> None:
         """Until the motion starts: what it waits for, every WATCH_EVERY s of wall time."""
-        if self.start_time is not None:
+        if self.start_time is not None or not self.active:
             return
         if self.ticks == 0 and self.get_parameter('use_sim_time').value:
             self.get_logger().warning(f'no tick in {WATCH_EVERY:g} s: use_sim_time is true and no /clock arrives')

@@ -22,7 +22,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import InvalidTopicNameException
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
@@ -33,14 +33,18 @@ from ddarm.arrays import per_joint
 from ddarm.physics.mujoco_plant import RobotError, load_robot, robot_joints
 from ddarm.physics.simulated_robot import Realism, RealismError, SimulatedRobot
 from ddarm.realtime import SchedulingError, period_ns, run_ticks
-from ddarm.ros.cdr import JointStateEncoder, encode_clock
+from ddarm.ros.cdr import JointStateEncoder, Stamp, encode_clock, stamp_of_ns
 from ddarm.ros.executable import run_node
+from ddarm.ros.lifecycle import ManagedNode
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, JOINT_STATES_TOPIC,
                                  ROBOT_COMMAND_QOS, SAMPLE_QOS, descriptor, proposed_values,
                                  refuse_undeclared_parameters, time_msg, undeclared_overrides)
 
 MODES = ('realtime', 'lockstep')
 COMMAND_TOPIC = '/effort_controller/commands'  # ros2_controllers' effort forward_command_controller, so named
+# The command in force over each period, stamped at the period's start: the evidence of what the robot was asked
+# for at each sample (a Float64MultiArray carries no stamp), recorded and scored as a plant's commands are.
+COMMANDED_EFFORT_TOPIC = '~/commanded_effort'
 RATE_RANGE = (1.0, 10_000.0)  # Hz
 WATCHDOG_PERIOD = 0.05  # wall s between checks of start-up and, in lockstep, of the command timeout
 # Lockstep, before the first command: sample 0 is published again one period later this often (wall s). A
@@ -76,7 +80,7 @@ def robot_joint_order(path: str, joints: list[str]) -> tuple[tuple[str, ...], tu
     return tuple(joints), tuple(theirs[name] for name in joints)
 
 
-class RobotNode(LifecycleNode):
+class RobotNode(ManagedNode):
     """A MuJoCo robot publishing its joint states and taking effort commands, managed by the lifecycle.
 
     realtime: a thread of its own ticks at t0 + kΔ on the wall clock (Δ = 1/rate), holds the effort in force over
@@ -100,6 +104,8 @@ class RobotNode(LifecycleNode):
         self.ticks_stop = threading.Event()
         self.sample = 0
         self.first_sample = FIRST_SAMPLE
+        self.start_ns = 0  # realtime: the node's clock at sample 0 of the robot's ticks
+        self.late_periods = 0  # realtime: periods whose tick came late, integrated at the next
         self.deadline = 0.0
         self.status_service = self.create_service(Trigger, '~/status', self._on_status)
         if self.get_parameter('autostart').value:
@@ -134,6 +140,9 @@ class RobotNode(LifecycleNode):
             ('command_timeout', 1.0, descriptor('s without a command after which the efforts are zeroed until the '
                                                 'next (lockstep: wall s before a period runs without one); 0: '
                                                 'never', floating=(0.0, 3600.0))),
+            ('hold_until_commanded', True, descriptor('hold the joints at the start state until the first command '
+                                                     'comes into force, as brakes hold a robot until its controller '
+                                                     'starts (false: it moves under gravity from activation)')),
             ('required_subscribers', 1, descriptor('lockstep: /joint_states subscribers to wait for before sample 0',
                                                    integer=(1, 100))),
             ('autostart', True, descriptor('configure and activate at launch (else wait for the lifecycle '
@@ -170,7 +179,8 @@ class RobotNode(LifecycleNode):
                                  's: in lockstep a command waits whole periods')
         # In lockstep the wall clock judges the timeout (the watchdog), not the robot's time.
         self.realism = Realism(values['position_noise'], values['velocity_noise'], values['noise_seed'], latency,
-                               values['command_timeout'] if self.mode == 'realtime' else 0.0)
+                               values['command_timeout'] if self.mode == 'realtime' else 0.0,
+                               values['hold_until_commanded'])
         self.command_timeout = values['command_timeout']
         self.required_subscribers = values['required_subscribers']
         self.model = robot
@@ -185,6 +195,7 @@ class RobotNode(LifecycleNode):
                                  f'{str(error).splitlines()[0]}') from None
         # Reliable, deep: a recorder keeps every sample, and a best-effort subscriber (a controller's) still matches.
         self.state_publisher = self.create_publisher(JointState, JOINT_STATES_TOPIC, SAMPLE_QOS)
+        self.commanded_publisher = self.create_publisher(JointState, COMMANDED_EFFORT_TOPIC, SAMPLE_QOS)
         self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS) \
             if self.mode == 'lockstep' else None
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
@@ -212,7 +223,7 @@ class RobotNode(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         with self.lock:
             self.robot = SimulatedRobot(self.model, q, v, self.realism)
-            self.sample, self.first_sample = 0, FIRST_SAMPLE
+            self.sample, self.first_sample, self.late_periods = 0, FIRST_SAMPLE, 0
             self.phase = STARTING
             if self.mode == 'realtime':
                 self._begin()
@@ -245,6 +256,7 @@ class RobotNode(LifecycleNode):
             self.robot = None
             for name, destroy in (('command_subscription', self.destroy_subscription),
                                   ('state_publisher', self.destroy_publisher),
+                                  ('commanded_publisher', self.destroy_publisher),
                                   ('clock_publisher', self.destroy_publisher),
                                   ('diagnostics_publisher', self.destroy_publisher),
                                   ('watchdog', self.destroy_timer)):
@@ -265,27 +277,35 @@ class RobotNode(LifecycleNode):
                 return callback(*args)
         return locked
 
-    def _time(self) -> float:
-        """The robot's time of the current sample: lockstep's own, else the node's clock."""
+    def _stamp(self, sample: int) -> Stamp:
+        """The stamp of a sample: lockstep, the robot's own time (sample 0 at `first_sample` periods); realtime, its
+        tick on the node's clock, t0 + nΔ (a robot stamps by its control cycle), exact in integer nanoseconds."""
         if self.mode == 'lockstep':
-            return (self.first_sample + self.sample) * self.period
-        return self.get_clock().now().nanoseconds * 1e-9
+            return stamp_of_ns(round((self.first_sample + sample) * self.period * 1e9))
+        return stamp_of_ns(self.start_ns + sample * period_ns(self.period))
 
-    def _publish_state(self, t: float) -> None:
+    def _time(self) -> float:
+        """The time of the current sample, s."""
+        stamp = self._stamp(self.sample)
+        return stamp.sec + stamp.nanosec * 1e-9
+
+    def _publish_state(self) -> None:
+        stamp = self._stamp(self.sample)
         q, v = self.robot.measured()
-        self.state_publisher.publish(self.encoder.encode(t, q, v, self.robot.applied))
+        self.state_publisher.publish(self.encoder.encode(stamp, q, v, self.robot.applied))
         if self.clock_publisher is not None:
-            self.clock_publisher.publish(encode_clock(t))
+            self.clock_publisher.publish(encode_clock(stamp))
 
     def _begin(self) -> None:
         self.phase = RUNNING
         now = time.monotonic_ns()
         self.deadline = time.monotonic() + START_RETRY
         if self.mode == 'lockstep':
-            self._publish_state(self._time())
+            self._publish_state()
             return
-        self.robot.start(now * 1e-9)
-        self._publish_state(self._time())
+        self.start_ns = self.get_clock().now().nanoseconds
+        self._publish_state()
+        self._integrate(now * 1e-9)  # period 0, under the effort in force at the start (none yet): out at tick 1
         self.ticks_stop = threading.Event()
         self.ticker = threading.Thread(target=self._run_ticks, name='robot-ticks', daemon=True,
                                        args=(now, period_ns(self.period)))
@@ -305,28 +325,49 @@ class RobotNode(LifecycleNode):
             self.ticker = None
 
     def _realtime_tick(self, index: int, deadline: int) -> bool:
+        """Tick `index`, due at `deadline` (ns), as a robot's control cycle runs: the state of this sample goes out,
+        then the effort in force now is held over the next period (integrated now, published at the next tick).
+        The robot's time goes on whether or not a tick comes on time: the periods of ticks skipped are integrated
+        first, each under the effort in force at its start, and counted as late."""
         with self.lock:
             if self.phase != RUNNING:
                 return False
             was_timed_out = self.robot.timed_out
-            self._step(deadline * 1e-9, self._time())
+            period = period_ns(self.period)
+            self.late_periods += max(0, index - self.sample)
+            while self.phase == RUNNING and self.sample < index:
+                self._publish_state()  # a skipped tick's state, late, stamped at its sample: the robot went through it
+                self._integrate((deadline - (index - self.sample) * period) * 1e-9)
+            if self.phase == RUNNING:
+                self._publish_state()
+                self._integrate(deadline * 1e-9)
             if self.robot is not None and self.robot.timed_out and not was_timed_out:
                 self._say_timeout(f'no command for more than command_timeout = {self.command_timeout} s')
             return self.phase == RUNNING
 
-    def _step(self, now: float, stamp: float) -> None:
-        """Hold the effort in force over one period, then publish the state of the next sample at `stamp`."""
-        if not self.robot.step(now):
+    def _integrate(self, now: float) -> None:
+        """Hold the effort in force at `now` over the current sample's period (its command, if it is one, published
+        stamped at the period's start): the robot moves on to the next sample."""
+        moved = self.robot.step(now)
+        if self.robot.commanded:
+            self.commanded_publisher.publish(self.encoder.encode(self._stamp(self.sample), effort=self.robot.effort))
+        if not moved:
             self.phase = ENDED
             self._report(DiagnosticStatus.ERROR, 'diverged', f'diverged during sample {self.sample}: the robot is '
                          'frozen (deactivate and activate to start again)')
             self.get_logger().error(f'diverged during sample {self.sample}: the robot is frozen')
             return
         self.sample += 1
-        self._publish_state(stamp if self.mode == 'realtime' else self._time())
         if self.sample % max(1, round(1.0 / self.period)) == 0:
             self._report(DiagnosticStatus.WARN if self.robot.counters['refused_commands']
-                         or self.robot.counters['timeouts'] else DiagnosticStatus.OK, 'running', 'running')
+                         or self.robot.counters['timeouts'] or self.late_periods else DiagnosticStatus.OK,
+                         'running', 'running')
+
+    def _step_and_publish(self, now: float) -> None:
+        """Lockstep: integrate the current period, then publish the state it ends in (and /clock)."""
+        self._integrate(now)
+        if self.phase == RUNNING:
+            self._publish_state()
 
     def _on_command(self, msg: Float64MultiArray) -> None:
         with self.lock:
@@ -340,7 +381,7 @@ class RobotNode(LifecycleNode):
                                         f'({self.robot.counters["refused_commands"]} refused so far)',
                                         throttle_duration_sec=LOG_EVERY)
             if lockstep:
-                self._step(now, now)
+                self._step_and_publish(now)
                 self.deadline = time.monotonic() + self.command_timeout
 
     def _watch(self) -> None:
@@ -355,14 +396,13 @@ class RobotNode(LifecycleNode):
         elif self.phase == RUNNING and now > self.deadline:
             if self.sample == 0 and self.robot.counters['commands'] + self.robot.counters['refused_commands'] == 0:
                 self.first_sample += 1
-                self._publish_state(self._time())
+                self._publish_state()
                 self.deadline = now + START_RETRY
             elif self.command_timeout > 0:
                 self.robot.time_out()
                 self._say_timeout(f'no command for sample {self.sample} within command_timeout = '
                                   f'{self.command_timeout} s: the period runs with zero efforts')
-                t = self._time()
-                self._step(t, t)
+                self._step_and_publish(self._time())
                 self.deadline = now + self.command_timeout
 
     def _say_timeout(self, message: str) -> None:
@@ -373,7 +413,7 @@ class RobotNode(LifecycleNode):
     def _report(self, level: bytes, event: str, message: str) -> None:
         """The robot's counters on /diagnostics: about once a second of samples, and at each fault."""
         values = {'event': event, 'node': self.get_fully_qualified_name(), 'mode': self.mode, 'sample': self.sample,
-                  **self.robot.counters}
+                  'late_periods': self.late_periods, **self.robot.counters}
         status = DiagnosticStatus(level=level, name='ddarm/robot', message=message, hardware_id='ddarm',
                                   values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         array = DiagnosticArray(status=[status])
@@ -388,7 +428,7 @@ class RobotNode(LifecycleNode):
             response.message = json.dumps({
                 'state': self._state_machine.current_state[1], 'phase': self.phase, 'sample': self.sample,
                 'time': self._time() if robot is not None else None,
-                'timed_out': robot is not None and robot.timed_out,
+                'timed_out': robot is not None and robot.timed_out, 'late_periods': self.late_periods,
                 **(robot.counters if robot is not None else {})})
         return response
 

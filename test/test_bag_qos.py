@@ -17,8 +17,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from ddarm.ros.interface import CLOCK_QOS, DIAGNOSTICS_QOS, REFERENCE_QOS, SAMPLE_QOS
-from ddarm.recording.bags import DEFAULT_QOS, EPISODE_TOPIC, TOPICS, BagError, EpisodeBagWriter
+from ddarm.ros.interface import CLOCK_QOS, DIAGNOSTICS_QOS, REFERENCE_QOS, ROBOT_COMMAND_QOS, SAMPLE_QOS
+from ddarm.recording.bags import (DEFAULT_QOS, EPISODE_TOPIC, ROBOT_COMMANDED_TOPIC, ROBOT_COMMANDS_TOPIC,
+                                  ROBOT_TOPICS, TOPICS, BagError, EpisodeBagWriter)
 
 DECLARED = {'/joint_states': SAMPLE_QOS, '/effort_command': SAMPLE_QOS, '/reference': REFERENCE_QOS,
             '/clock': CLOCK_QOS, '/diagnostics': DIAGNOSTICS_QOS}
@@ -108,7 +109,10 @@ def test_the_defaults_are_what_ddarm_publishers_offer():
                                                                  for topic, profile in DECLARED.items()}
     assert DEFAULT_QOS[EPISODE_TOPIC] == {'reliability': 'reliable', 'durability': 'transient_local',
                                           'history': 'keep_last', 'depth': 1}
-    assert set(DEFAULT_QOS) == set(TOPICS)
+    assert set(DEFAULT_QOS) == set(TOPICS) | set(ROBOT_TOPICS)
+    # A robot's episode: its record of the commands in force as its states go, the efforts as a robot takes them.
+    assert DEFAULT_QOS[ROBOT_COMMANDED_TOPIC] == topic_qos(SAMPLE_QOS)
+    assert DEFAULT_QOS[ROBOT_COMMANDS_TOPIC] == topic_qos(ROBOT_COMMAND_QOS)
 
 
 @pytest.mark.parametrize('source', ['defaults', 'graph'])

@@ -27,6 +27,7 @@ from ddarm.physics.mujoco_plant import load_robot
 from ddarm.physics.simulated_robot import Realism, RealismError, SimulatedRobot
 from ddarm.ros.executors import node_executor
 from ddarm.ros.interface import SAMPLE_QOS
+from ddarm.ros.robot_session import counted_faults
 from ddarm_control.node import ControllerNode
 from ddarm_sim.robot import RobotNode, RobotNodeError
 from two_link import robot_mjcf, write_files
@@ -83,7 +84,9 @@ def test_a_refused_command_holds_the_one_in_force(two_link):
 
 def test_no_command_for_the_timeout_zeroes_the_efforts_until_the_next(two_link):
     robot = simulated(two_link[0], Realism(command_timeout=0.05))
-    robot.start(0.0)
+    for n in range(10):  # no command yet: nothing is overdue, the efforts are zero already
+        robot.step(n * 0.01 - 0.1)
+    assert not robot.timed_out
     robot.receive([4.0, 3.0], 0.0)
     for n in range(6):
         robot.step(n * 0.01)
@@ -242,6 +245,7 @@ def test_the_lifecycle_configure_activate_deactivate_cleanup(ros_context, two_li
         assert state() == 'unconfigured' and node.robot is None
         with pytest.raises(Exception):  # out of order: rclpy's state machine refuses it
             node.trigger_activate()
+        assert not change(Transition.TRANSITION_ACTIVATE)  # refused through the service, the node lives on
         assert state() == 'unconfigured'
         assert change(Transition.TRANSITION_CONFIGURE) and state() == 'inactive'
         deadline = time.monotonic() + 0.3
@@ -289,3 +293,9 @@ def test_ddarm_robot_refuses_a_missing_mjcf_in_one_line():
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stdout + result.stderr
     assert 'robot: refused to start: mjcf is not set' in result.stdout
+
+
+def test_the_faults_the_nodes_counted_are_said_and_the_clean_counters_are_not():
+    counters = {'robot': {'state': 'active', 'commands': 51, 'refused_commands': 0, 'timeouts': 1, 'late_periods': 3},
+                'computed_torque': {'stale_ticks': 0, 'clamped_commands': 4, 'ticks': 60}, 'pd_gravity': {}}
+    assert counted_faults(counters) == ['the robot node counted timeouts 1, late_periods 3']

@@ -86,6 +86,40 @@ def test_the_measurement_through_the_graph_is_the_in_process_one_and_its_bag_is_
     assert scored['spec']['mjcf'] == str(UR5 / 'ur5.urdf')
 
 
+def test_the_measurement_on_ddarm_robot_in_lockstep_is_the_in_process_one_and_its_bag_scores_it(capsys, tmp_path):
+    spec = dataclasses.replace(tuned_spec(UR5 / 'ur5.urdf', UR5 / 'ur5-motion.yaml', 10.0), duration=0.4)
+    gains = write_yaml(tmp_path / 'ur5.yaml', spec)
+    on_robot = validate_json(capsys, tmp_path, gains, UR5 / 'ur5.urdf', '--robot', '--run', 'robot')
+    in_process = validate_json(capsys, tmp_path, gains, UR5 / 'ur5.urdf', '--run', 'in-process')
+    assert on_robot['measured']['transport'] == 'ros-robot-lockstep'
+    assert not [warning for warning in on_robot['warnings'] if 'ddarm robot' in warning]  # no fault counted
+    for index in ('I1', 'I2', 'I'):
+        assert on_robot['measured'][index] == pytest.approx(in_process['measured'][index], rel=1e-12)
+    bag = Path(on_robot['bag'])
+    assert bag == tmp_path / 'robot' / 'bags' / 'measured'
+    assert main(['score', str(bag), '--json']) == 0
+    scored = json.loads(capsys.readouterr().out)
+    assert scored['I'] == on_robot['measured']['I']
+    assert scored['samples_scored'] == in_process['measured']['samples_scored']
+
+
+def test_free_running_the_measurement_is_recorded_scored_and_its_faults_said(capsys, tmp_path):
+    spec = dataclasses.replace(tuned_spec(UR5 / 'ur5.urdf', UR5 / 'ur5-motion.yaml', 10.0), duration=0.5)
+    gains = write_yaml(tmp_path / 'ur5.yaml', spec)
+    report = validate_json(capsys, tmp_path, gains, UR5 / 'ur5.urdf', '--robot', 'realtime', '--run', 'free')
+    assert report['measured']['transport'] == 'ros-robot-realtime'
+    assert main(['score', report['bag'], '--json']) == 0
+    scored = json.loads(capsys.readouterr().out)
+    assert scored['I'] == report['measured']['I'] and scored['samples_scored'] == 51
+
+
+def test_robot_needs_a_motion_file_and_excludes_ros(capsys, tmp_path):
+    gains = write_yaml(tmp_path / 'ur5.yaml', tuned_spec(UR5 / 'ur5.urdf', UR5 / 'ur5-motion.yaml', 10.0))
+    with pytest.raises(SystemExit):
+        main(['validate', '--gains', str(gains), '--mjcf', str(UR5 / 'ur5.urdf'), '--ros', '--robot'])
+    assert 'not allowed with argument' in capsys.readouterr().err
+
+
 def test_the_panda_robot_tracks_far_worse_than_its_urdf_predicts(capsys, tmp_path):
     gains = write_yaml(tmp_path / 'panda.yaml', tuned_spec(PANDA / 'panda.urdf', PANDA / 'panda-motion.yaml', 15.0))
     assert main(['validate', '--gains', str(gains), '--mjcf', str(PANDA_ROBOT), '--runs', str(tmp_path),

@@ -29,6 +29,7 @@ from ddarm.reporting.text import figure_text, markdown_code, markdown_text
 
 FIGURE_NAME, PAGE_NAME = 'errors.png', 'validation.md'
 SIDES = ('predicted', 'measured')
+ROBOT_MODES = ('lockstep', 'realtime')  # ddarm.ros.robot_session.MODES, without loading ROS to list them
 DPI = 110
 # An applied torque this far (relative) below the law's command was cut by a limit: a motor's ctrl = τ / (gear ·
 # gain) and its force gear · gain · ctrl differ from τ by rounding alone, many orders of magnitude less.
@@ -47,9 +48,15 @@ def add_validate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--tau', type=finite, default=0.0,
                         help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
     add_torque_limit_arguments(parser, "the YAML URDF's <limit effort> of each joint")
-    parser.add_argument('--ros', action='store_true',
-                        help='measure through the ROS graph (the plant node stepping the robot, the controller node, '
-                             'lockstep) and keep its bag in the run folder (bags/measured)')
+    measure = parser.add_mutually_exclusive_group()
+    measure.add_argument('--ros', action='store_true',
+                         help='measure through the ROS graph (the plant node stepping the robot, the controller node, '
+                              'lockstep) and keep its bag in the run folder (bags/measured)')
+    measure.add_argument('--robot', nargs='?', const='lockstep', choices=ROBOT_MODES, metavar='MODE',
+                         help='measure as on a ros2_control robot: `ddarm robot` and the controller node in robot mode '
+                              '(a timer, the efforts as a Float64MultiArray); lockstep (the default: exact, on the '
+                              "robot's /clock) or realtime (both free-running on the wall clock); keeps its bag in "
+                              'the run folder (bags/measured)')
     add_run_arguments(parser, 'validate')
 
 
@@ -217,6 +224,9 @@ def command_validate(args: argparse.Namespace) -> int:
                                      torque_limit=torque_limit(args))
     measured_spec = dataclasses.replace(predicted_spec, mjcf=absolute_path(args.mjcf),
                                         mjcf_joints=robot_joints(args, gains.joint_names))
+    if args.robot and measured_spec.motion is None:
+        raise EpisodeError('--robot runs the controller node in robot mode, which reads its reference from a motion '
+                           'file: the YAML names none (give it a motion)')
     check_outputs(None, args.runs, args.run)
     predicted_plan, measured_plan = check_episode(predicted_spec), check_episode(measured_spec)
     warnings = []
@@ -231,12 +241,21 @@ def command_validate(args: argparse.Namespace) -> int:
     with run_folder('validate', gains.controller, args.runs, args.run, command) as run:
         predicted = run_episode(predicted_spec, predicted_plan)
         bag = None  # in-process: nothing crossed ROS
+        transport = 'in-process'
+        if args.ros or args.robot:
+            bag = run.path / 'bags' / 'measured'
+            bag.parent.mkdir()
         if args.ros:
             from ddarm.ros.session import run_graph_episode  # ROS only when asked for
 
-            bag = run.path / 'bags' / 'measured'
-            bag.parent.mkdir()
             measured = run_graph_episode(measured_spec, bag=bag, command=command)
+            transport = 'ros-lockstep'
+        elif args.robot:
+            from ddarm.ros.robot_session import counted_faults, record_robot_episode
+
+            measured, _, counters = record_robot_episode(measured_spec, bag, args.robot, command=command)
+            transport = f'ros-robot-{args.robot}'
+            warnings += [f'measured through ddarm robot ({args.robot}): {fault}' for fault in counted_faults(counters)]
         else:
             measured = run_episode(measured_spec, measured_plan)
         whole = not (predicted.diverged[0] or measured.diverged[0])  # else the indices cover different samples
@@ -244,7 +263,7 @@ def command_validate(args: argparse.Namespace) -> int:
         report = {
             'predicted': predicted.summary(),
             'measured': {**measured.summary(), 'robot': episode_robot(measured_spec, measured_plan).description(),
-                         'transport': 'ros-lockstep' if args.ros else 'in-process'},
+                         'transport': transport},
             'bag': None if bag is None else str(bag),
             'ratio': {index: ratio(measured_indices[index], predicted_indices[index]) if whole else None
                       for index in INDICES},

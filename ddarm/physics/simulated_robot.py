@@ -33,6 +33,9 @@ class Realism:
     seed: int = 0  # of the noise: the same seed, the same noise
     command_latency: float = 0.0  # s from a command's arrival to the joints
     command_timeout: float = 0.0  # s without a command after which the efforts are zeroed; 0: never
+    # The joints held at the start state until the first command comes into force, as brakes hold a robot until its
+    # controller starts; else the robot moves under gravity from the start.
+    hold_until_commanded: bool = True
 
     def __post_init__(self) -> None:
         for name in ('position_noise', 'velocity_noise', 'command_latency', 'command_timeout'):
@@ -57,6 +60,8 @@ class SimulatedRobot:
         self._noise = np.random.default_rng(realism.seed)
         self._pending: deque[tuple[float, np.ndarray]] = deque()  # (due time, effort), in arrival order
         self.effort = np.zeros(self.dof)  # the command in force
+        self.commanded = False  # whether the effort in force is a command's (not the zero before one, or a timeout's)
+        self.held = realism.hold_until_commanded  # the brakes: released when the first command comes into force
         self.applied = np.zeros(self.dof)  # what the actuators applied over the last period
         self.last_arrival: float | None = None
         self.timed_out = False
@@ -84,23 +89,25 @@ class SimulatedRobot:
         self.timed_out = True
         self._pending.clear()
         self.effort = np.zeros(self.dof)
+        self.commanded = False
 
     def overdue(self, now: float) -> bool:
-        """Whether no command has arrived for longer than the timeout by `now` (the start counts as an arrival)."""
+        """Whether no command has arrived for longer than the timeout by `now`, since the last one (before the first
+        one the efforts are zero already: nothing is overdue)."""
         timeout = self.realism.command_timeout
         return timeout > 0 and self.last_arrival is not None and now - self.last_arrival > timeout
 
-    def start(self, now: float) -> None:
-        """The robot starts taking commands at `now`: the timeout counts from here."""
-        self.last_arrival = now
-
     def step(self, now: float) -> bool:
-        """Hold the effort in force at `now` over one period; False once the robot diverged (its state frozen)."""
+        """Hold the effort in force at `now` over one period; False once the robot diverged (its state frozen).
+        After it, `effort` and `commanded` say what was in force over that period."""
         if self.overdue(now):
             self.time_out()
         while self._pending and self._pending[0][0] <= now:
             self.effort = self._pending.popleft()[1]
-            self.timed_out = False
+            self.timed_out, self.commanded, self.held = False, True, False
+        if self.held:
+            self.applied = np.zeros(self.dof)
+            return True
         self.applied = self.plant.saturate(self.effort)
         return self.plant.advance(self.applied)
 

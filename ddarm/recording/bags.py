@@ -55,6 +55,16 @@ TOPICS = {
 REQUIRED_TOPICS = ('/joint_states', '/effort_command', '/reference', EPISODE_TOPIC)
 # The topics the indices are computed from: each must come from one publisher.
 SAMPLED_TOPICS = ('/joint_states', '/effort_command', '/clock', '/reference')
+# A robot's episode (`ddarm robot`, a ros2_control robot's topics): its efforts arrive unstamped on the command topic,
+# and the robot's own record of the command in force at each sample stands where a plant's stamped commands do.
+ROBOT_COMMANDS_TOPIC = '/effort_controller/commands'
+ROBOT_COMMANDED_TOPIC = '/robot/commanded_effort'
+ROBOT_TOPICS = {**{topic: TOPICS[topic] for topic in ('/joint_states', '/reference', '/clock', '/diagnostics',
+                                                      EPISODE_TOPIC)},
+                ROBOT_COMMANDED_TOPIC: 'sensor_msgs/msg/JointState',
+                ROBOT_COMMANDS_TOPIC: 'std_msgs/msg/Float64MultiArray'}
+# The stamp (integer ns) of a robot episode's sample 0: a robot's clock does not start at 0 with its episode.
+SAMPLE_0_KEY = 'sample_0_stamp_ns'
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 STATUS_KEY = 'ddarm.status'
 EPISODE_KEY = 'ddarm.episode'
@@ -90,6 +100,9 @@ DEFAULT_QOS: dict[str, TopicQos] = {
     '/clock': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1000},
     '/diagnostics': {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 10},
     EPISODE_TOPIC: {'reliability': 'reliable', 'durability': 'transient_local', 'history': 'keep_last', 'depth': 1},
+    ROBOT_COMMANDED_TOPIC: {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last',
+                            'depth': 1000},
+    ROBOT_COMMANDS_TOPIC: {'reliability': 'reliable', 'durability': 'volatile', 'history': 'keep_last', 'depth': 1},
 }
 _RELIABILITY = {'reliable': QosReliability.RELIABLE, 'best_effort': QosReliability.BEST_EFFORT}
 _DURABILITY = {'volatile': QosDurability.VOLATILE, 'transient_local': QosDurability.TRANSIENT_LOCAL}
@@ -115,13 +128,14 @@ def _rosbags_qos(path: Path, topic: str, profile) -> Qos:
                False)
 
 
-def _offered_profiles(path: Path, offered_qos: Mapping[str, Sequence[TopicQos]] | None) -> dict[str, list[Qos]]:
+def _offered_profiles(path: Path, offered_qos: Mapping[str, Sequence[TopicQos]] | None,
+                      topics: Mapping[str, str]) -> dict[str, list[Qos]]:
     offered_qos = {} if offered_qos is None else offered_qos
-    unknown = sorted(set(offered_qos) - set(TOPICS))
+    unknown = sorted(set(offered_qos) - set(topics))
     if unknown:
-        raise BagError(f'{path}: offered QoS for {unknown}, which are not topics of an episode bag {sorted(TOPICS)}')
+        raise BagError(f'{path}: offered QoS for {unknown}, which are not topics of an episode bag {sorted(topics)}')
     profiles = {}
-    for topic in TOPICS:
+    for topic in topics:
         given = offered_qos.get(topic, [DEFAULT_QOS[topic]])
         if isinstance(given, Mapping):
             raise BagError(f'{path}: offered QoS for {topic} must be a list of profiles, one per publisher')
@@ -224,7 +238,8 @@ class EpisodeBagWriter:
     Use as a context manager: an exception while recording still closes the bag, marked
     incomplete, so a scorer never takes it for a good run.
 
-    `offered_qos` maps a topic of TOPICS to the profiles its publishers offered, one TopicQos per
+    `topics` maps each topic the bag records to its type: TOPICS (a plant's episode) or ROBOT_TOPICS (a robot's).
+    `offered_qos` maps a topic of those to the profiles its publishers offered, one TopicQos per
     publisher heard (rosbag2's convention); a topic it leaves out gets DEFAULT_QOS, what ddarm's
     own publisher offers. The connections are made when the bag opens, so the QoS must be known
     by then. Any failure to write (a full disk, a file-size limit, a storage error) is a BagError
@@ -234,11 +249,13 @@ class EpisodeBagWriter:
     """
 
     def __init__(self, path: Path | str, episode: dict, storage: str = 'mcap',
-                 offered_qos: Mapping[str, Sequence[TopicQos]] | None = None) -> None:
+                 offered_qos: Mapping[str, Sequence[TopicQos]] | None = None,
+                 topics: Mapping[str, str] = TOPICS) -> None:
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
         self.path = checked_output_path(path)
-        profiles = _offered_profiles(self.path, offered_qos)
+        self.topics = dict(topics)
+        profiles = _offered_profiles(self.path, offered_qos, self.topics)
         self.status: str | None = None  # 'complete' or 'incomplete' once closed
         self.failure: str | None = None
         self.writer: Writer | None = None
@@ -262,7 +279,7 @@ class EpisodeBagWriter:
             self._abandoned = weakref.finalize(self, _close_abandoned, self.writer)
             self.connections = {topic: self.writer.add_connection(topic, msgtype, typestore=TYPESTORE,
                                                                   offered_qos_profiles=profiles[topic])
-                                for topic, msgtype in TOPICS.items()}
+                                for topic, msgtype in self.topics.items()}
             self.writer.set_custom_data(EPISODE_KEY, text)
         self.write_message(EPISODE_TOPIC, 0, TYPESTORE.types['std_msgs/msg/String'](data=text))
 
@@ -290,12 +307,12 @@ class EpisodeBagWriter:
         """One message as serialized CDR (what rclpy's serialize_message gives)."""
         self._check_open(topic)
         if topic not in self.connections:
-            raise BagError(f'{self.path}: {topic} is not a topic of an episode bag {sorted(TOPICS)}')
+            raise BagError(f'{self.path}: {topic} is not a topic of an episode bag {sorted(self.topics)}')
         with self._writing():
             self.writer.write(self.connections[topic], int(timestamp_ns), cdr)
 
     def write_message(self, topic: str, timestamp_ns: int, message) -> None:
-        self.write(topic, timestamp_ns, TYPESTORE.serialize_cdr(message, TOPICS[topic]))
+        self.write(topic, timestamp_ns, TYPESTORE.serialize_cdr(message, self.topics[topic]))
 
     def set_publishers(self, publishers: Mapping[str, Sequence[str]]) -> None:
         """The fully qualified names of the nodes heard publishing each topic, one per publisher.
@@ -304,7 +321,7 @@ class EpisodeBagWriter:
         refuses a bag whose sampled topics had more than one publisher. A later call replaces it.
         """
         self._check_open(PUBLISHERS_KEY)
-        unknown = sorted(set(publishers) - set(TOPICS))
+        unknown = sorted(set(publishers) - set(self.topics))
         if unknown:
             raise BagError(f'{self.path}: publishers for {unknown}, which are not topics of an episode bag')
         for topic, nodes in publishers.items():
@@ -386,13 +403,6 @@ def deserialize(raw: bytes | memoryview, msgtype: str):
     return message
 
 
-def _sample(stamp, period: float, topic: str) -> int:
-    try:
-        return sample_at(stamp.sec + stamp.nanosec * 1e-9, period)
-    except MessageError as error:
-        raise BagError(f'{topic}: {error}') from error
-
-
 def _in_order(names, joints: list, topic: str) -> np.ndarray | slice:
     try:
         return joint_order(names, joints, topic)
@@ -454,9 +464,18 @@ def _repeated(keys) -> list:
     return sorted(repeated)
 
 
-def _by_sample(path: Path, topic: str, messages: list, period: float) -> dict:
-    """Sample index -> the one message stamped at it; two for one sample are refused, not overwritten."""
-    samples = [_sample(message.header.stamp, period, topic) for message in messages]
+def _by_sample(path: Path, topic: str, messages: list, period: float, sample_0_ns: int = 0) -> dict:
+    """Sample index -> the one message stamped at it, counted from the stamp of sample 0 (a robot's states before
+    it, while it waited for its controller, are not the episode's); two for one sample are refused, not overwritten."""
+    def stamp_ns(message) -> int:
+        return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+
+    messages = [message for message in messages if stamp_ns(message) >= sample_0_ns]
+    try:
+        samples = [sample_at((stamp_ns(message) - sample_0_ns) * 1e-9, period) for message in messages]
+    except MessageError as error:
+        raise BagError(f'{topic}: {error}' + (f' (counted from sample 0 at {sample_0_ns} ns)' if sample_0_ns else '')
+                       ) from error
     repeated = _repeated(samples)
     if repeated:
         raise BagError(f'{path}: {topic} holds more than one message for samples {repeated[:10]}: '
@@ -482,13 +501,13 @@ def _publishers(path: Path, text) -> dict:
 
 def _check_one_source(path: Path, custom: dict, connections: dict) -> None:
     """Refuse evidence from more than one publisher on a topic the indices depend on (FAULTS.md 25)."""
-    for topic in SAMPLED_TOPICS:
+    for topic in (*SAMPLED_TOPICS, ROBOT_COMMANDED_TOPIC):
         if topic in connections and len(profiles := connections[topic].ext.offered_qos_profiles) > 1:
             raise BagError(f'{path}: {topic} was recorded from {len(profiles)} publishers (its '
                            'offered_qos_profiles): the evidence may mix two sources')
     if PUBLISHERS_KEY in custom:
         publishers = _publishers(path, custom[PUBLISHERS_KEY])
-        for topic in SAMPLED_TOPICS:
+        for topic in (*SAMPLED_TOPICS, ROBOT_COMMANDED_TOPIC):
             if len(nodes := publishers.get(topic, [])) > 1:
                 raise BagError(f'{path}: {topic} had {len(nodes)} publishers ({", ".join(nodes)}): '
                                'the evidence may mix two sources')
@@ -509,10 +528,14 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
         by_topic = defaultdict(list)
         for connection in reader.connections:
             by_topic[connection.topic].append(connection)
-        missing = [topic for topic in REQUIRED_TOPICS if topic not in by_topic]
+        # A robot's bag holds the robot's record of its commands where a plant's holds the stamped commands.
+        commands_topic = (ROBOT_COMMANDED_TOPIC if '/effort_command' not in by_topic and ROBOT_COMMANDED_TOPIC in by_topic
+                          else '/effort_command')
+        required = tuple(commands_topic if topic == '/effort_command' else topic for topic in REQUIRED_TOPICS)
+        missing = [topic for topic in required if topic not in by_topic]
         if missing:
             raise BagError(f'{path}: missing topics {missing}: not a complete ddarm episode bag')
-        read = [topic for topic in (*REQUIRED_TOPICS, '/clock') if topic in by_topic]
+        read = [topic for topic in (*required, '/clock') if topic in by_topic]
         for topic in read:
             if len(by_topic[topic]) > 1:
                 types = [connection.msgtype for connection in by_topic[topic]]
@@ -532,6 +555,10 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
                        'which one the episode ran is unknown' if messages[EPISODE_TOPIC]
                        else f'{path}: {EPISODE_TOPIC} holds no configuration')
     episode, period, joints = _episode_configuration(path, messages[EPISODE_TOPIC][0].data)
+    sample_0_ns = episode.get(SAMPLE_0_KEY, 0)
+    if isinstance(sample_0_ns, bool) or not isinstance(sample_0_ns, int) or sample_0_ns < 0:
+        raise BagError(f'{path}: {EPISODE_TOPIC} holds {SAMPLE_0_KEY} {shown(sample_0_ns)}, not a whole number of ns '
+                       '>= 0: not the configuration ddarm records')
     if len(joints) > MAX_JOINTS:
         raise BagError(f'{path}: {EPISODE_TOPIC} names {len(joints)} joints, more than the {MAX_JOINTS} an arm may '
                        'have')
@@ -552,16 +579,16 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
         raise BagError(f'{path}: /clock holds more than one message at t = {[t * 1e-9 for t in repeated[:10]]} s: '
                        'a second clock, or messages recorded twice')
     states = {}
-    for n, message in _by_sample(path, '/joint_states', messages['/joint_states'], period).items():
+    for n, message in _by_sample(path, '/joint_states', messages['/joint_states'], period, sample_0_ns).items():
         order = _in_order(message.name, joints, '/joint_states')
         states[n] = tuple(None if len(values) == 0 else _values(path, values, f'/joint_states sample {n}', field,
                                                                joints)[order]
                           for field, values in (('position', message.position), ('velocity', message.velocity),
                                                 ('effort', message.effort)))
     commands = {}
-    for n, message in _by_sample(path, '/effort_command', messages['/effort_command'], period).items():
-        order = _in_order(message.name, joints, '/effort_command')
-        commands[n] = _values(path, message.effort, f'/effort_command sample {n}', 'effort', joints)[order]
+    for n, message in _by_sample(path, commands_topic, messages[commands_topic], period, sample_0_ns).items():
+        order = _in_order(message.name, joints, commands_topic)
+        commands[n] = _values(path, message.effort, f'{commands_topic} sample {n}', 'effort', joints)[order]
     return BagEpisode(episode, status, joints, times, q_ref, v_ref, a_ref, nominal, states, commands, path)
 
 

@@ -137,9 +137,14 @@ def decode_joint_state(data: bytes, what: str = 'joint state') -> JointStateFiel
     return JointStateFields(Header(stamp, strings[0]), tuple(strings[1:]), *arrays)
 
 
-def encode_clock(t: float) -> bytes:
-    """A rosgraph_msgs/Clock of time `t` (s), serialized: the plant's tick at every sample."""
-    stamp = stamp_of(t)
+def stamp_of_ns(nanoseconds: int) -> Stamp:
+    """The stamp of a time in integer nanoseconds: exact, where a wall-clock time in float seconds is not."""
+    return Stamp(nanoseconds // 1_000_000_000, nanoseconds % 1_000_000_000)
+
+
+def encode_clock(t: float | Stamp) -> bytes:
+    """A rosgraph_msgs/Clock of time `t` (s, or a Stamp), serialized: the plant's tick at every sample."""
+    stamp = t if isinstance(t, Stamp) else stamp_of(t)
     return ENCAPSULATION + _STAMP.pack(stamp.sec, stamp.nanosec)
 
 
@@ -163,9 +168,9 @@ class JointStateEncoder:
             block.extend(_COUNT.pack(len(encoded) + 1) + encoded + b'\x00')
         return bytes(block)
 
-    def encode(self, t: float, position=None, velocity=None, effort=None) -> bytes:
-        """A JointState stamped `t` (s) with these arrays (None: empty), each one value per joint."""
-        stamp = stamp_of(t)
+    def encode(self, t: float | Stamp, position=None, velocity=None, effort=None) -> bytes:
+        """A JointState stamped `t` (s, or a Stamp) with these arrays (None: empty), each one value per joint."""
+        stamp = t if isinstance(t, Stamp) else stamp_of(t)
         parts = [ENCAPSULATION, _STAMP.pack(stamp.sec, stamp.nanosec), self._prefix]
         offset = _STAMP.size + len(self._prefix)  # from the start of the body
         for values in (position, velocity, effort):
