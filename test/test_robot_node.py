@@ -6,6 +6,7 @@ then equals `ddarm episode --mjcf` in-process. Nothing here depends on how fast 
 """
 
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -299,3 +300,46 @@ def test_the_faults_the_nodes_counted_are_said_and_the_clean_counters_are_not():
     counters = {'robot': {'state': 'active', 'commands': 51, 'refused_commands': 0, 'timeouts': 1, 'late_periods': 3},
                 'computed_torque': {'stale_ticks': 0, 'clamped_commands': 4, 'ticks': 60}, 'pd_gravity': {}}
     assert counted_faults(counters) == ['the robot node counted timeouts 1, late_periods 3']
+
+
+def robot_process(*parameters):
+    return subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', 'robot', '--ros-args', '-p', f'mjcf:={MJCF}',
+                             *[argument for parameter in parameters for argument in ('-p', parameter)]],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+@pytest.mark.parametrize('state', ['unconfigured', 'inactive', 'active'])
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
+def test_sigint_or_sigterm_in_any_state_ends_the_robot_cleanly(ros_context, state, stop):
+    process = robot_process('autostart:=false' if state != 'active' else 'autostart:=true')
+    client_node = rclpy.create_node('signal_probe', context=ros_context)
+    executor = node_executor(ros_context)
+    executor.add_node(client_node)
+    try:
+        def call(service_type, name, request):
+            client = client_node.create_client(service_type, name)
+            deadline = time.monotonic() + 60
+            while not client.service_is_ready():
+                assert time.monotonic() < deadline and process.poll() is None, 'the robot never came up'
+                executor.spin_once(timeout_sec=0.05)
+            future = client.call_async(request)
+            while not future.done():
+                assert time.monotonic() < deadline, 'no answer (a hang guard, not a timing check)'
+                executor.spin_once(timeout_sec=0.05)
+            return future.result()
+
+        if state == 'inactive':
+            assert call(ChangeState, '/robot/change_state',
+                        ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))).success
+        label = call(GetState, '/robot/get_state', GetState.Request()).current_state.label
+        assert label == state
+        process.send_signal(stop)
+        output, _ = process.communicate(timeout=30)
+        assert process.returncode == 0, output
+        assert 'Traceback' not in output
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        executor.shutdown()
+        client_node.destroy_node()

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import signal
+import subprocess
+import sys
+import time
 import json
 from pathlib import Path
 
@@ -257,3 +261,45 @@ def test_a_prediction_that_diverges_gives_no_ratio_and_the_saturating_robot_is_n
     assert report['saturated']['measured'] and report['saturated']['predicted'] == []
     page = (Path(report['run']) / 'validation.md').read_text()
     assert 'predicted: DIVERGED at sample' in page and 'measured: saturated: ' in page
+
+
+def children(pid: int) -> dict[int, str]:
+    """The processes whose parent is `pid`, with their command lines."""
+    found = {}
+    for entry in Path('/proc').iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+                if ppid == pid:
+                    found[int(entry.name)] = (entry / 'cmdline').read_bytes().replace(b'\0', b' ').decode()
+            except (OSError, IndexError, ValueError):
+                continue
+    return found
+
+
+@pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
+def test_a_robot_measurement_stopped_leaves_no_bag_and_no_node(tmp_path, stop):
+    spec = dataclasses.replace(tuned_spec(UR5 / 'ur5.urdf', UR5 / 'ur5-motion.yaml', 10.0), duration=60.0)
+    gains = write_yaml(tmp_path / 'ur5.yaml', spec)
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', 'validate', '--gains', str(gains), '--mjcf',
+                                str(UR5 / 'ur5.urdf'), '--robot', 'realtime', '--runs', str(tmp_path), '--run',
+                                'stopped'], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        nodes = {}
+        while len(nodes) < 2:  # the robot and the controller, running
+            assert time.monotonic() < deadline and process.poll() is None, 'the measurement never started'
+            nodes = {pid: line for pid, line in children(process.pid).items() if 'ddarm.cli.main' in line}
+            time.sleep(0.1)
+        time.sleep(2.0)  # into the episode: the controller commanding, the recorder recording
+        process.send_signal(stop)
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode != 0 and 'stopped cleanly' in err, err
+    assert not (tmp_path / 'stopped' / 'bags' / 'measured').exists()  # no bag rather than half of one
+    for pid in nodes:
+        assert not Path(f'/proc/{pid}').exists() or 'Z' in Path(f'/proc/{pid}/stat').read_text().split()[2], \
+            f'{nodes[pid]} outlived the measurement'
