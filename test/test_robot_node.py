@@ -343,3 +343,25 @@ def test_sigint_or_sigterm_in_any_state_ends_the_robot_cleanly(ros_context, stat
             process.wait()
         executor.shutdown()
         client_node.destroy_node()
+
+
+def test_ddarm_robot_takes_its_mjcf_as_an_option(ros_context, tmp_path):
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', 'robot', '--mjcf', str(MJCF), '--ros-args',
+                                '-p', 'mode:=realtime'], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node = rclpy.create_node('option_probe', context=ros_context)
+    executor = node_executor(ros_context)
+    executor.add_node(node)
+    states = []
+    node.create_subscription(JointState, '/joint_states', states.append, SAMPLE_QOS)
+    try:
+        deadline = time.monotonic() + 60
+        while not states:
+            assert time.monotonic() < deadline and process.poll() is None, 'no state from the robot'
+            executor.spin_once(timeout_sec=0.05)
+        assert list(states[0].name) == [f'panda_joint{n}' for n in range(1, 8)]
+    finally:
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=30)
+        executor.shutdown()
+        node.destroy_node()
+    assert process.returncode == 0, output

@@ -132,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     plant.set_defaults(handler=command_plant, takes_ros_arguments=True)
     robot = commands.add_parser('robot', help='start a MuJoCo robot behind ros2_control\'s topics, a lifecycle node '
                                              '(then --ros-args -p mjcf:=FILE ...)')
+    robot.add_argument('--mjcf', metavar='FILE', help='the MuJoCo robot (the node\'s mjcf parameter): an MJCF, or a '
+                                                     'URDF MuJoCo compiles')
     robot.set_defaults(handler=command_robot, takes_ros_arguments=True)
     controller = commands.add_parser('controller', help='start a controller node (then --ros-args ...)')
     controller.add_argument('law', choices=CONTROLLERS)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ddarm.cli.arguments import absolute_path
+
 
 def command_plant(args: argparse.Namespace) -> int:
     from ddarm_sim.node import main as plant_main
@@ -14,7 +16,8 @@ def command_plant(args: argparse.Namespace) -> int:
 def command_robot(args: argparse.Namespace) -> int:
     from ddarm_sim.robot import main as robot_main
 
-    return robot_main(['ddarm-robot', *args.ros_arguments])
+    given = ['--ros-args', '-p', f'mjcf:={absolute_path(args.mjcf)}'] if args.mjcf else []
+    return robot_main(['ddarm-robot', *args.ros_arguments, *given])
 
 
 def command_controller(args: argparse.Namespace) -> int:
