@@ -302,16 +302,20 @@ def test_the_faults_the_nodes_counted_are_said_and_the_clean_counters_are_not():
     assert counted_faults(counters) == ['the robot node counted timeouts 1, late_periods 3']
 
 
-def robot_process(*parameters):
-    return subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', 'robot', '--ros-args', '-p', f'mjcf:={MJCF}',
-                             *[argument for parameter in parameters for argument in ('-p', parameter)]],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+# Each managed node as its executable starts it: the command line, and its name on the graph.
+MANAGED_NODES = {'robot': (['robot', '--ros-args', '-p', f'mjcf:={MJCF}'], '/robot'),
+                 'computed_torque': (['controller', 'computed_torque', '--ros-args', '-p', 'kp:=[100.0, 100.0, 100.0]',
+                                      '-p', 'kv:=[20.0, 20.0, 20.0]'], '/computed_torque')}
 
 
+@pytest.mark.parametrize('node', sorted(MANAGED_NODES))
 @pytest.mark.parametrize('state', ['unconfigured', 'inactive', 'active'])
 @pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
-def test_sigint_or_sigterm_in_any_state_ends_the_robot_cleanly(ros_context, state, stop):
-    process = robot_process('autostart:=false' if state != 'active' else 'autostart:=true')
+def test_sigint_or_sigterm_in_any_state_ends_a_managed_node_cleanly(ros_context, node, state, stop):
+    command, name = MANAGED_NODES[node]
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', *command, '-p',
+                                f'autostart:={"true" if state == "active" else "false"}'],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     client_node = rclpy.create_node('signal_probe', context=ros_context)
     executor = node_executor(ros_context)
     executor.add_node(client_node)
@@ -320,7 +324,7 @@ def test_sigint_or_sigterm_in_any_state_ends_the_robot_cleanly(ros_context, stat
             client = client_node.create_client(service_type, name)
             deadline = time.monotonic() + 60
             while not client.service_is_ready():
-                assert time.monotonic() < deadline and process.poll() is None, 'the robot never came up'
+                assert time.monotonic() < deadline and process.poll() is None, f'{name} never came up'
                 executor.spin_once(timeout_sec=0.05)
             future = client.call_async(request)
             while not future.done():
@@ -329,9 +333,9 @@ def test_sigint_or_sigterm_in_any_state_ends_the_robot_cleanly(ros_context, stat
             return future.result()
 
         if state == 'inactive':
-            assert call(ChangeState, '/robot/change_state',
+            assert call(ChangeState, f'{name}/change_state',
                         ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))).success
-        label = call(GetState, '/robot/get_state', GetState.Request()).current_state.label
+        label = call(GetState, f'{name}/get_state', GetState.Request()).current_state.label
         assert label == state
         process.send_signal(stop)
         output, _ = process.communicate(timeout=30)
