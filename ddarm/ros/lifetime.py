@@ -10,6 +10,7 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
+import subprocess
 import sys
 
 PARENT_PID_VARIABLE = 'DDARM_PARENT_PID'
@@ -38,3 +39,18 @@ def follow_parent() -> None:
             raise OSError(ctypes.get_errno(), 'prctl(PR_SET_PDEATHSIG) failed')
     if os.getppid() != int(parent):
         raise SystemExit(f'the process that started this node ({parent}) is gone; not starting')
+
+
+def stop_processes(processes, stop: int = signal.SIGINT, timeout: float = 10.0) -> None:
+    """Stop node processes started by this one: `stop` (SIGINT: a node leaves the graph as after a Ctrl-C) to all
+    at once, then, for each still running after `timeout` s, SIGKILL; each one waited for (no zombie left)."""
+    processes = list(processes)
+    for process in processes:
+        if process.poll() is None:
+            process.send_signal(stop)
+    for process in processes:
+        try:
+            process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()

@@ -39,6 +39,7 @@ from ddarm.recording.bags import (ROBOT_COMMANDED_TOPIC, ROBOT_COMMANDS_TOPIC, R
 from ddarm.ros.cdr import read_stamp
 from ddarm.ros.driver import qos_description
 from ddarm.ros.executors import node_executor
+from ddarm.ros.lifetime import stop_processes
 from ddarm.ros.interface import CLOCK_QOS, DIAGNOSTICS_QOS, ROBOT_COMMAND_QOS, SAMPLE_QOS, reference_msg
 from ddarm.ros.names import namespace_arguments
 from ddarm.ros.session import node_environment, session_namespace
@@ -242,15 +243,7 @@ def record_robot_episode(spec: EpisodeSpec, bag: Path | str, mode: str = 'lockst
             while None in sum((publishers := recorder.publishers()).values(), []) and time.monotonic() < naming:
                 executor.spin_once(timeout_sec=0.05)
         finally:
-            for process in processes.values():
-                if process.poll() is None:
-                    process.send_signal(subprocess.signal.SIGINT)
-            for process in processes.values():
-                try:
-                    process.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
+            stop_processes(processes.values())
             executor.shutdown()
             recorder.destroy_node()
             rclpy.try_shutdown(context=context)

@@ -15,6 +15,7 @@ JointState messages, converted at each take and publish.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import tempfile
@@ -23,7 +24,7 @@ import time
 import numpy as np
 
 from ddarm.errors import DdarmError
-from ddarm.ros.lifetime import child_environment, follow_parent
+from ddarm.ros.lifetime import child_environment, follow_parent, stop_processes
 
 PING_TOPIC = 'ping'
 PONG_TOPIC = 'pong'
@@ -135,12 +136,7 @@ def measure_round_trips(count: int, timeout: float = 120.0, serialized: bool = F
         wall = (returned[count] - begin) * 1e-9
         latencies = (returned[1:] - sent[1:]) * 1e-6
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        stop_processes([process], signal.SIGTERM)
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -16,7 +16,7 @@ import yaml
 from ddarm.control.laws import CONTROLLERS
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.executors import node_executor
-from ddarm.ros.lifetime import child_environment
+from ddarm.ros.lifetime import child_environment, stop_processes
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, SchedulingOptions, arm_parameters,
                                        episode_record)
@@ -173,15 +173,8 @@ class GraphSession:
         return record_and_score(self, spec, bag, storage=storage, command=command)
 
     def _stop(self, name: str) -> None:
-        process = self.processes.pop(name)
         self.arms.pop(name, None)
-        if process.poll() is None:
-            process.send_signal(subprocess.signal.SIGINT)
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        stop_processes([self.processes.pop(name)], timeout=5)
 
     def close(self) -> None:
         for name in list(self.processes):
