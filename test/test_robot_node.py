@@ -72,6 +72,14 @@ def test_a_command_reaches_the_joints_after_the_latency_and_the_mjcf_bounds_the_
     np.testing.assert_array_equal(robot.applied, [30.0, -20.0])  # the motors' force ranges
 
 
+def test_a_latency_of_whole_periods_is_whole_periods_whatever_the_rounding(two_link):
+    robot = simulated(two_link[0], Realism(command_latency=0.02))
+    for n in range(20):  # sample instants as the node makes them, n Δ: 7 Δ + 0.02 rounds past 9 Δ
+        robot.receive([float(n + 1), 0.0], n * 0.01)
+        robot.step(n * 0.01)
+        assert robot.applied[0] == (0.0 if n < 2 else n - 1)
+
+
 def test_a_refused_command_holds_the_one_in_force(two_link):
     robot = simulated(two_link[0])
     robot.receive([1.0, 2.0], 0.0)

@@ -20,6 +20,11 @@ from ddarm.errors import DdarmError
 from ddarm.physics.mujoco_plant import MujocoPlant, Robot
 
 
+# s: a command is due at a time within this of its arrival plus the latency, which in lockstep is a sum of floats that
+# may round a hair past the sample instant it names.
+DUE_TOLERANCE = 1e-9
+
+
 class RealismError(DdarmError, ValueError):
     """A realism setting ddarm cannot run a robot with."""
 
@@ -102,7 +107,7 @@ class SimulatedRobot:
         After it, `effort` and `commanded` say what was in force over that period."""
         if self.overdue(now):
             self.time_out()
-        while self._pending and self._pending[0][0] <= now:
+        while self._pending and self._pending[0][0] <= now + DUE_TOLERANCE:
             self.effort = self._pending.popleft()[1]
             self.timed_out, self.commanded, self.held = False, True, False
         if self.held:
