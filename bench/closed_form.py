@@ -3,7 +3,7 @@
     .venv/bin/python bench/closed_form.py [--episodes 1000] [--rounds 5] [--json]
 
 The closed-form loop is what a control engineer would write for this one arm and nothing else:
-M(q), V(q, q̇) and G(q) of MODEL.md §3 as formulas (V from M's Christoffel symbols), the 2x2
+M(q), V(q, q̇) and G(q) of docs/model-specification.md §3 as formulas (V from M's Christoffel symbols), the 2x2
 block solved by hand, computed torque with delay 1, RK4 with the engine's substeps, the
 divergence bounds and the indices (2.5) and (3.2); numba `prange` over the episodes on every
 core. It runs the engine's reference episode (ddarm.episodes.bench.REFERENCE) with the same
@@ -33,7 +33,7 @@ G = 9.81
 
 @numba.njit(inline='always', fastmath={'contract'})
 def _dynamics(q1, q2, q3, v1, v2, v3):
-    """M11, the lower 2x2 block of M (M12 = M13 = 0), V and G of MODEL.md §3 at one state."""
+    """M11, the lower 2x2 block of M (M12 = M13 = 0), V and G of docs/model-specification.md §3 at one state."""
     c2, s2, c3, s3 = np.cos(q2), np.sin(q2), np.cos(q3), np.sin(q3)
     c23, s23 = np.cos(q2 + q3), np.sin(q2 + q3)
     reach = c2 + 0.5 * c23

@@ -11,11 +11,11 @@ import numpy as np
 
 from ddarm.errors import DdarmError
 
-# Refused before any work (FAULTS.md 6): far beyond the joint count of any arm we run.
+# Refused before any work (docs/faults.md 6): far beyond the joint count of any arm we run.
 MAX_JOINTS = 64
-# Refused before any work (FAULTS.md 6): far beyond an episode length we run.
+# Refused before any work (docs/faults.md 6): far beyond an episode length we run.
 MAX_REFERENCE_POINTS = 1_000_000
-# Sample periods of an episode, refused beyond before any work (FAULTS.md 6).
+# Sample periods of an episode, refused beyond before any work (docs/faults.md 6).
 MAX_SAMPLES = 1_000_000
 # Δ in s: below a microsecond no controller samples, and T/Δ, ω* = ωΔ*/Δ stay far from overflow.
 PERIOD_RANGE = (1e-6, 10.0)

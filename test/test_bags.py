@@ -1,5 +1,5 @@
 """Episodes recorded as rosbag2 bags and scored from the bag alone; broken, duplicated or foreign evidence and
-failed writes refused by name (FAULTS.md 17-19, 25)."""
+failed writes refused by name (docs/faults.md 17-19, 25)."""
 
 import errno
 import json
@@ -207,7 +207,7 @@ def test_separate_processes_record_a_scorable_bag(tmp_path):
 EPISODE = {'spec': SPECS['computed_torque'].to_dict(), 'joints': ['joint1', 'joint2', 'joint3']}
 
 
-# Duplicated or foreign evidence (FAULTS.md 25) ------------------------------------------------------------------
+# Duplicated or foreign evidence (docs/faults.md 25) -------------------------------------------------------------
 
 def offered_qos(bag, topic):
     with Reader(bag) as reader:

@@ -331,8 +331,9 @@ def test_ddarm_bench_compares_the_two_paths_on_the_episodes_both_ran(capsys):
 
 
 def test_the_engine_equals_bench_closed_forms_hand_written_loop_for_the_papers_arm():
-    # bench/closed_form.py writes M, V, G of MODEL.md §3 as formulas (V from M's Christoffel symbols) and the
-    # loop by hand: its indices are the engine's for every member, so the benchmark compares equal work.
+    # bench/closed_form.py writes M, V, G of docs/model-specification.md §3 as formulas (V from M's Christoffel
+    # symbols) and the loop by hand: its indices are the engine's for every member, so the benchmark compares equal
+    # work.
     spec = importlib.util.spec_from_file_location('closed_form', ROOT / 'bench' / 'closed_form.py')
     closed_form = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(closed_form)

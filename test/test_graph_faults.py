@@ -1,4 +1,4 @@
-"""Bad input on the graph (FAULTS.md 1-11, 13): refused with the problem named, nothing integrated, no crash."""
+"""Bad input on the graph (docs/faults.md 1-11, 13): refused with the problem named, nothing integrated, no crash."""
 
 import os
 import signal
@@ -335,7 +335,7 @@ def test_the_config_files_load(law):
 
 
 def test_a_graph_on_another_domain_is_never_heard(ros_context, tmp_path):
-    """FAULTS.md 14: with localhost discovery, distinct domain IDs do not cross."""
+    """docs/faults.md 14: with localhost discovery, distinct domain IDs do not cross."""
     parameters = tmp_path / 'plant.yaml'
     parameters.write_text('plant:\n  ros__parameters:\n    command_timeout: 2.0\n')
     environment = {**os.environ, 'ROS_DOMAIN_ID': str(claim_domain_id())}

@@ -1,4 +1,4 @@
-"""Graphs on one domain (FAULTS.md 21): the graphs ddarm starts never hear each other or a user's graph,
+"""Graphs on one domain (docs/faults.md 21): the graphs ddarm starts never hear each other or a user's graph,
 and a foreign node on a hand-started graph fails the episode, naming it."""
 
 import json

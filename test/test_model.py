@@ -17,7 +17,7 @@ def closed_form_mass_matrix(q):
 
 
 def closed_form_mass_matrix_derivative(q):
-    """dM[i, j, k] = ∂M_ij/∂q_k, differentiated by hand from MODEL.md's M."""
+    """dM[i, j, k] = ∂M_ij/∂q_k, differentiated by hand from docs/model-specification.md's M."""
     c2, s2, s3 = np.cos(q[1]), np.sin(q[1]), np.sin(q[2])
     c23, s23 = np.cos(q[1] + q[2]), np.sin(q[1] + q[2])
     reach = c2 + 0.5 * c23

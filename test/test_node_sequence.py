@@ -1,4 +1,4 @@
-"""Nodes that survive any sequence of episodes (FAULTS.md 22): complete, diverged, timeout, no start and
+"""Nodes that survive any sequence of episodes (docs/faults.md 22): complete, diverged, timeout, no start and
 refused input, in any order, on the same plant and controller processes; the next good episode is exact."""
 
 import dataclasses

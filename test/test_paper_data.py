@@ -74,7 +74,7 @@ def test_the_settings_hold_what_the_code_held():
     assert settings.reconstruction[1].startswith("Trajectory 1 starts at q = (0, π/3, -2π/3), the end at (1, 0, 0) "
                                                  "(docs/model-specification.md §4); the paper's Fig. 4 is lost. "
                                                  "Trajectory 2")
-    # The report cites the repository's specification, never the MODEL.md it is not in.
+    # The report cites the repository's specification, never the earlier specification outside it.
     assert not any('MODEL.md' in note for note in settings.reconstruction)
 
 

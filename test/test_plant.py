@@ -1,4 +1,4 @@
-"""The plant core: zero-order hold, saturation, refusals and divergence (spec §3, §5, §7; FAULTS.md)."""
+"""The plant core: zero-order hold, saturation, refusals and divergence (spec §3, §5, §7; docs/faults.md)."""
 
 import numpy as np
 import pytest

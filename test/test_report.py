@@ -180,7 +180,7 @@ def test_the_report_puts_our_figures_beside_the_papers_and_links_their_bags(writ
         assert claim['claim'] in text and claim['evidence'] in text
     assert '**REPRODUCED**: computed torque tracks better' in text
     assert '**NOT REPRODUCED**: with torque limits' in text
-    # The model is cited where the repository holds it, by section; MODEL.md is not in the repository.
+    # The model is cited where the repository holds it, by section; the earlier specification is not in the repository.
     assert 'fixed in docs/model-specification.md (§1, §4)' in text
     assert '## Claims (docs/model-specification.md §10)' in text
     assert '(docs/model-specification.md §6)' in text and 'MODEL.md' not in text

@@ -1,4 +1,5 @@
-"""Message <-> array conversion: every malformed message is refused with its problem named (FAULTS.md 1, 4-6, 8)."""
+"""Message <-> array conversion: every malformed message is refused with its problem named
+(docs/faults.md 1, 4-6, 8)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Clean stops (FAULTS.md 16, 23): SIGINT and SIGTERM end any ddarm command with one line and 128 + the signal,
+"""Clean stops (docs/faults.md 16, 23): SIGINT and SIGTERM end any ddarm command with one line and 128 + the signal,
 its bag under way closed as incomplete and its run marked interrupted; SIGKILL leaves no node process behind."""
 
 import json

@@ -1,5 +1,5 @@
 """The tuner node over ROS: episodes driven on separate plant and controller processes, recorded as bags,
-scored from the bags; stopped by SIGTERM it leaves every finished bag readable (FAULTS.md 15-17)."""
+scored from the bags; stopped by SIGTERM it leaves every finished bag readable (docs/faults.md 15-17)."""
 
 import json
 import signal

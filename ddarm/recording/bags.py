@@ -188,7 +188,7 @@ def folder_problem(folder: Path | str) -> str | None:
 
 def checked_output_path(path: Path | str) -> Path:
     """Refuse an output path that is empty, climbs with '..', goes through a symlink, already exists, goes through
-    a file, or whose parts that ddarm creates (those not there yet) are no names (output_name_problem) (FAULTS.md
+    a file, or whose parts that ddarm creates (those not there yet) are no names (output_name_problem) (docs/faults.md
     19). Its folder may be new (made with it); checked_output_location also wants the folder there."""
     if str(path) == '':  # Path('') is '.', the current folder
         raise BagError('the output path is empty')
@@ -500,7 +500,7 @@ def _publishers(path: Path, text) -> dict:
 
 
 def _check_one_source(path: Path, custom: dict, connections: dict) -> None:
-    """Refuse evidence from more than one publisher on a topic the indices depend on (FAULTS.md 25)."""
+    """Refuse evidence from more than one publisher on a topic the indices depend on (docs/faults.md 25)."""
     for topic in (*SAMPLED_TOPICS, ROBOT_COMMANDED_TOPIC):
         if topic in connections and len(profiles := connections[topic].ext.offered_qos_profiles) > 1:
             raise BagError(f'{path}: {topic} was recorded from {len(profiles)} publishers (its '

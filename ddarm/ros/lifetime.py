@@ -2,7 +2,7 @@
 
 The parent names itself in DDARM_PARENT_PID; the child asks the Linux kernel to send it SIGTERM
 when that parent dies (prctl PR_SET_PDEATHSIG), so a SIGKILL of a driver leaves no node
-running on (FAULTS.md 23). SIGTERM rather than SIGKILL: the node leaves the DDS graph cleanly.
+running on (docs/faults.md 23). SIGTERM rather than SIGKILL: the node leaves the DDS graph cleanly.
 """
 
 from __future__ import annotations
