@@ -1,5 +1,10 @@
-"""Shared by the graph tests: the plant and a controller as nodes of this process, driven by the episode driver."""
+"""Shared by the graph tests: the plant and a controller as nodes of this process, driven by the episode driver;
+spinning an executor until a condition holds, and calling services (lifecycle ones too) from a test."""
 
+import time
+
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
@@ -12,6 +17,44 @@ from ddarm.ros.node_parameters import node_parameters
 
 def overrides(values: dict) -> list:
     return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def spin_until(executor, condition, resend=None, timeout: float = 30.0) -> None:
+    """Spin until `condition()`; `resend()` again now and then (a best-effort /clock or state may be lost)."""
+    deadline, sent = time.monotonic() + timeout, time.monotonic()
+    while not condition():
+        assert time.monotonic() < deadline, 'condition not met in time (a hang guard, not a timing check)'
+        executor.spin_once(timeout_sec=0.01)
+        if resend is not None and time.monotonic() - sent > 0.5:
+            resend()
+            sent = time.monotonic()
+
+
+def call_service(executor, client, request, again_after: float | None = None):
+    """The reply of a service, once the service is up. `again_after` (s, for a request that may be repeated): asked
+    again when no reply came in that long: a reply sent before the server matched the client's reply reader is lost
+    (DDS discovery is not symmetric), and `service_is_ready` says only that the request side matched."""
+    spin_until(executor, client.service_is_ready)
+    future, asked = client.call_async(request), time.monotonic()
+
+    def answered() -> bool:
+        nonlocal future, asked
+        if not future.done() and again_after is not None and time.monotonic() - asked > again_after:
+            client.remove_pending_request(future)
+            future, asked = client.call_async(request), time.monotonic()
+        return future.done()
+    spin_until(executor, answered)
+    return future.result()
+
+
+def change_state(executor, client, transition: int) -> bool:
+    """Ask a node's ~/change_state (`client`) for a lifecycle transition: whether it was made."""
+    return call_service(executor, client, ChangeState.Request(transition=Transition(id=transition))).success
+
+
+def lifecycle_state(executor, client) -> str:
+    """A node's lifecycle state, from its ~/get_state (`client`)."""
+    return call_service(executor, client, GetState.Request(), again_after=2.0).current_state.label
 
 
 class InProcessGraph:

@@ -28,7 +28,7 @@ from ddarm.control.laws import GainError
 from ddarm.motion.files import load_motion
 from ddarm.motion.programmed import MotionError
 from ddarm_control.node import ControllerNode
-from graph_helpers import overrides
+from graph_helpers import call_service, change_state, lifecycle_state, overrides, spin_until
 
 ROOT = Path(__file__).resolve().parent.parent
 UR5 = ROOT / 'config' / 'arms' / 'ur5'
@@ -77,26 +77,16 @@ class Peer:
         self.clock_ns = 0
 
     def spin_until(self, condition, resend=None, timeout=30.0):
-        """Spin until `condition`; `resend` again now and then (/clock is best effort)."""
-        deadline, sent = time.monotonic() + timeout, time.monotonic()
-        while not condition():
-            assert time.monotonic() < deadline, 'condition not met in time (a hang guard, not a timing check)'
-            self.executor.spin_once(timeout_sec=0.01)
-            if resend is not None and time.monotonic() - sent > 0.5:
-                resend()
-                sent = time.monotonic()
+        spin_until(self.executor, condition, resend, timeout)
 
     def call(self, client, request):
-        self.spin_until(client.service_is_ready)
-        future = client.call_async(request)
-        self.spin_until(future.done)
-        return future.result()
+        return call_service(self.executor, client, request)
 
     def change(self, transition: int) -> bool:
-        return self.call(self.change_client, ChangeState.Request(transition=Transition(id=transition))).success
+        return change_state(self.executor, self.change_client, transition)
 
     def state(self) -> str:
-        return self.call(self.state_client, GetState.Request()).current_state.label
+        return lifecycle_state(self.executor, self.state_client)
 
     def wait_for_peers(self) -> None:
         """Configured: the node's command publisher and state subscription matched with ours, /clock heard."""

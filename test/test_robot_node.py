@@ -31,6 +31,7 @@ from ddarm.ros.interface import SAMPLE_QOS
 from ddarm.ros.robot_session import counted_faults
 from ddarm_control.node import ControllerNode
 from ddarm_sim.robot import RobotNode, RobotNodeError
+from graph_helpers import call_service, lifecycle_state, spin_until
 from two_link import robot_mjcf, write_files
 
 pytest.importorskip('mujoco')
@@ -151,18 +152,14 @@ class Graph:
             self.executor.add_node(node)
 
     def spin_until(self, condition, timeout=30.0):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < deadline, 'condition not met in time (a hang guard, not a timing check)'
-            self.executor.spin_once(timeout_sec=0.01)
+        spin_until(self.executor, condition, timeout=timeout)
 
     def call(self, service_type, name, request):
         client = self.client_node.create_client(service_type, name)
-        self.spin_until(client.service_is_ready)
-        future = client.call_async(request)
-        self.spin_until(future.done)
-        self.client_node.destroy_client(client)
-        return future.result()
+        try:
+            return call_service(self.executor, client, request)
+        finally:
+            self.client_node.destroy_client(client)
 
     def status(self, node='/robot'):
         return json.loads(self.call(Trigger, f'{node}/status', Trigger.Request()).message)
@@ -310,41 +307,36 @@ def test_the_faults_the_nodes_counted_are_said_and_the_clean_counters_are_not():
     assert counted_faults(counters) == ['the robot node counted timeouts 1, late_periods 3']
 
 
-# Each managed node as its executable starts it: the command line, and its name on the graph.
-MANAGED_NODES = {'robot': (['robot', '--ros-args', '-p', f'mjcf:={MJCF}'], '/robot'),
+# Each managed node as its executable starts it: the command line, its name on the graph, and the parameter that
+# starts it unconfigured (the plant's `autostart` starts an episode: `managed` says it waits for the services).
+MANAGED_NODES = {'robot': (['robot', '--ros-args', '-p', f'mjcf:={MJCF}'], '/robot', 'autostart:=false'),
                  'computed_torque': (['controller', 'computed_torque', '--ros-args', '-p', 'kp:=[100.0, 100.0, 100.0]',
-                                      '-p', 'kv:=[20.0, 20.0, 20.0]'], '/computed_torque')}
+                                      '-p', 'kv:=[20.0, 20.0, 20.0]'], '/computed_torque', 'autostart:=false'),
+                 'plant': (['plant', '--ros-args'], '/plant', 'managed:=true')}
 
 
 @pytest.mark.parametrize('node', sorted(MANAGED_NODES))
 @pytest.mark.parametrize('state', ['unconfigured', 'inactive', 'active'])
 @pytest.mark.parametrize('stop', [signal.SIGINT, signal.SIGTERM])
 def test_sigint_or_sigterm_in_any_state_ends_a_managed_node_cleanly(ros_context, node, state, stop):
-    command, name = MANAGED_NODES[node]
-    process = subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', *command, '-p',
-                                f'autostart:={"true" if state == "active" else "false"}'],
+    command, name, unconfigured = MANAGED_NODES[node]
+    process = subprocess.Popen([sys.executable, '-m', 'ddarm.cli.main', *command,
+                                *(['-p', unconfigured] if state != 'active' else [])],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     client_node = rclpy.create_node('signal_probe', context=ros_context)
     executor = node_executor(ros_context)
     executor.add_node(client_node)
     try:
-        def call(service_type, name, request):
-            client = client_node.create_client(service_type, name)
-            deadline = time.monotonic() + 60
-            while not client.service_is_ready():
-                assert time.monotonic() < deadline and process.poll() is None, f'{name} never came up'
-                executor.spin_once(timeout_sec=0.05)
-            future = client.call_async(request)
-            while not future.done():
-                assert time.monotonic() < deadline, 'no answer (a hang guard, not a timing check)'
-                executor.spin_once(timeout_sec=0.05)
-            return future.result()
-
+        state_client = client_node.create_client(GetState, f'{name}/get_state')
+        spin_until(executor, lambda: state_client.service_is_ready() or process.poll() is not None, timeout=60)
+        assert process.poll() is None, f'{name} ended: {process.communicate()[0]}'
         if state == 'inactive':
-            assert call(ChangeState, f'{name}/change_state',
-                        ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))).success
-        label = call(GetState, f'{name}/get_state', GetState.Request()).current_state.label
-        assert label == state
+            change = client_node.create_client(ChangeState, f'{name}/change_state')
+            spin_until(executor, change.service_is_ready)
+            change.call_async(ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
+            # Its reply may be lost (see call_service); the state it leads to is what counts.
+            spin_until(executor, lambda: lifecycle_state(executor, state_client) == 'inactive', timeout=60)
+        assert lifecycle_state(executor, state_client) == state
         process.send_signal(stop)
         output, _ = process.communicate(timeout=30)
         assert process.returncode == 0, output
