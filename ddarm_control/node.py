@@ -132,7 +132,6 @@ class ControllerNode(ManagedNode):
         self.configure_error: Exception | None = None
         self.configured = False  # the parameter callbacks check and apply changes once configure built the law
         self.active = False  # commands flow only while active
-        self.autostarting = False
         self.configurations = 0
         self.ignored_messages = 0  # states that arrived while the node was not active
         self.joints: list[str] = []
@@ -146,14 +145,7 @@ class ControllerNode(ManagedNode):
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         if self.get_parameter('autostart').value:
-            self.autostarting = True
-            try:
-                for transition, name in ((self.trigger_configure, 'configure'), (self.trigger_activate, 'activate')):
-                    if transition() != TransitionCallbackReturn.SUCCESS:
-                        self.destroy_node()  # refused: gone from the graph now, not when collected
-                        raise self.configure_error or ControllerError(f'the controller did not {name}')
-            finally:
-                self.autostarting = False
+            self.launch(ControllerError)
         else:
             # The gains by joint are declared at configure; any other name not declared is refused now.
             unknown = [name for name in undeclared_overrides(self, self.parameter_overrides)
@@ -163,18 +155,6 @@ class ControllerNode(ManagedNode):
                 raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, ())}')
 
     # Lifecycle ---------------------------------------------------------------------------------
-
-    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        try:
-            self._configure()
-        except Exception as error:  # kept and, at autostart, raised from the constructor as it is
-            self._release()
-            self.configure_error = error
-            if not self.autostarting:
-                self.get_logger().error(f'configure refused: {error}')
-            return TransitionCallbackReturn.FAILURE
-        self.configure_error = None
-        return TransitionCallbackReturn.SUCCESS
 
     def _configure(self) -> None:
         law = self.law_name
@@ -258,7 +238,7 @@ class ControllerNode(ManagedNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._fresh_motion()
         self.active = True
-        if not self.autostarting:
+        if not self.launching:
             self.get_logger().info('activated: the commands flow, a fresh motion from the next state')
         return TransitionCallbackReturn.SUCCESS
 
@@ -269,31 +249,12 @@ class ControllerNode(ManagedNode):
         self.get_logger().info('deactivated: no command until activated again (states and ticks ignored)')
         return TransitionCallbackReturn.SUCCESS
 
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
     def _release(self) -> None:
         """Back to unconfigured: the topics, timers and services made at configure destroyed, the model freed."""
         self.active = False
         self.configured = False
-        for name, destroy in (('command_publisher', self.destroy_publisher),
-                              ('diagnostics_publisher', self.destroy_publisher),
-                              ('state_subscription', self.destroy_subscription),
-                              ('reference_subscription', self.destroy_subscription),
-                              ('timer', self.destroy_timer), ('watchdog', self.destroy_timer),
-                              ('reset_service', self.destroy_service), ('status_service', self.destroy_service)):
-            entity = getattr(self, name, None)
-            if entity is not None:
-                destroy(entity)
+        self.destroy_entities('command_publisher', 'diagnostics_publisher', 'state_subscription',
+                              'reference_subscription', 'timer', 'watchdog', 'reset_service', 'status_service')
         self._forget_configuration()
 
     def _forget_configuration(self) -> None:

@@ -13,7 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
@@ -34,6 +34,7 @@ from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNO
                                      undeclared_overrides)
 from ddarm.ros.cdr import JointStateEncoder, decode_joint_state, encode_clock
 from ddarm.ros.executable import run_node
+from ddarm.ros.lifecycle import ManagedNode
 from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
 from ddarm.samples import MessageError
 from ddarm.arrays import per_joint
@@ -172,7 +173,7 @@ def plant_settings(values: dict, arm: Arm, reduced_by: Reduction | None = None,
                          None if mass_scale is None else tuple(mass_scale), q0, v0, values['spin_margin'], robot)
 
 
-class PlantNode(Node):
+class PlantNode(ManagedNode):
     """Publishes the arm's state at every sample and integrates each period under the commanded effort.
 
     lockstep: the state of t_n is published, and [t_n, t_{n+1}) is integrated only once the
@@ -181,43 +182,25 @@ class PlantNode(Node):
     `spin_margin` before each deadline and spinning to it) and integrates under the latest command;
     the executor's callbacks and the ticks share the plant's state under `lock`. `realtime_priority`
     and `cpu_affinity` schedule the whole process (ddarm.ros.scheduling). The arm is built once, at
-    start: the `urdf` reduced to the joints of the `motion` file (or with every movable joint), and
+    configure: the `urdf` reduced to the joints of the `motion` file (or with every movable joint), and
     /joint_states names its joints.
+
+    A managed (lifecycle) node. `managed` false (the default): configured and activated at construction (a
+    configure refused is raised), an episode started at once with `autostart`, else on ~/reset. `managed` true:
+    unconfigured, only the parameters and the lifecycle services; configure builds the arm and makes the topics,
+    the watchdog and ~/reset, activate starts an episode (as ~/reset does), deactivate ends the episode in
+    progress (no more states, commands ignored, ~/reset refused), cleanup frees what configure made.
     """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('plant', **kwargs)
         self.incompatible_qos_events = 0
-        self._declare_parameters()
-        self.scheduling = NodeScheduling(self._parameter_values())
-        self.arm, self.reduced_by = plant_arm(self._parameter_values())
-        self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
-        self.state_encoder = JointStateEncoder(self.joints)
-        self.chain = chain_from_model(self.arm.model)
-        self.robot = plant_robot(self._parameter_values(), self.arm)
-        self.settings = plant_settings(self._parameter_values(), self.arm, self.reduced_by, self.robot)
-        warm_up(self.chain)
-        refuse_undeclared_parameters(self, 'plant')
-        self.add_on_set_parameters_callback(self._check_parameters)
-
-        self.state_publisher = self.create_publisher(
-            JointState, JOINT_STATES_TOPIC, SAMPLE_QOS,
-            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
-        self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS)
-        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
         # The real-time ticks run on a thread of their own: every callback that touches the episode holds the lock.
         self.lock = threading.Lock()
-        # States and commands cross as CDR, read and written by ddarm.ros.cdr: rclpy's conversion is slower.
-        self.command_subscription = self.create_subscription(
-            JointState, EFFORT_COMMAND_TOPIC, self._locked(self._on_command), SAMPLE_QOS, raw=True,
-            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
-        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
-        wall = Clock(clock_type=ClockType.STEADY_TIME)
-        # Checks start-up and command timeouts; each wake costs a lockstep sample's worth of executor time.
-        self.watchdog = self.create_timer(WATCHDOG_PERIOD, self._locked(self._watch), clock=wall)
         self.ticker: threading.Thread | None = None
         self.ticks_stop = threading.Event()
-
+        self.active = False  # ~/reset starts episodes only while active
+        self._forget_configuration()
         self.phase = IDLE
         self.plant: Plant | None = None
         self.latest_command: np.ndarray | None = None
@@ -227,18 +210,118 @@ class PlantNode(Node):
         self.tick_times: list[float] = []
         self.lateness: list[int] = []  # ns: how late each real-time tick started after its deadline
         self.began = 0.0
-        unknown = undeclared_overrides(self, kwargs.get('parameter_overrides') or ())
+        self._declare_parameters()
+        refuse_undeclared_parameters(self, 'plant')
+        self.add_on_set_parameters_callback(self._check_parameters)
+        overrides = kwargs.get('parameter_overrides') or ()
+        if self.get_parameter('managed').value:
+            # Unconfigured: the parameters and the lifecycle services; the lifecycle services do the rest.
+            try:
+                self._refuse_unknown(overrides)
+            except PlantError:
+                self.destroy_node()
+                raise
+            return
+        # Unmanaged (the default): configured and activated at launch, refused (raised) if configure fails.
+        self.launch(PlantError, lambda: self._refuse_unknown(overrides))
+        if self.get_parameter('autostart').value:
+            try:
+                self.start_episode()
+            except Exception:
+                self.destroy_node()
+                raise
+
+    # Lifecycle ---------------------------------------------------------------------------------
+
+    def _refuse_unknown(self, overrides) -> None:
+        unknown = undeclared_overrides(self, overrides)
         if unknown:
             raise PlantError(f'unknown parameters {unknown} (not plant parameters: a typo?)')
-        # Said at start also because rclpy's logger finds its caller through inspect, whose first call in a process
-        # maps every loaded module to its file: 130 ms with numba, NumPy and rclpy loaded, measured. Its first
-        # warning of a stale command, under the lock, missed 7 to 12 real-time deadlines at once.
+
+    def _configure(self) -> None:
+        values = self._parameter_values()
+        self.scheduling = NodeScheduling(values)
+        self.arm, self.reduced_by = plant_arm(values)
+        self.joints = self.arm.joint_names  # the reduced model's: what /joint_states names
+        self.state_encoder = JointStateEncoder(self.joints)
+        self.chain = chain_from_model(self.arm.model)
+        self.robot = plant_robot(values, self.arm)
+        self.settings = plant_settings(values, self.arm, self.reduced_by, self.robot)
+        warm_up(self.chain)
+
+        self.state_publisher = self.create_publisher(
+            JointState, JOINT_STATES_TOPIC, SAMPLE_QOS,
+            event_callbacks=PublisherEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
+        self.clock_publisher = self.create_publisher(ClockMsg, CLOCK_TOPIC, CLOCK_QOS)
+        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+        # States and commands cross as CDR, read and written by ddarm.ros.cdr: rclpy's conversion is slower.
+        self.command_subscription = self.create_subscription(
+            JointState, EFFORT_COMMAND_TOPIC, self._locked(self._on_command), SAMPLE_QOS, raw=True,
+            event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self._incompatible_qos, use_default_callbacks=False))
+        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
+        wall = Clock(clock_type=ClockType.STEADY_TIME)
+        # Checks start-up and command timeouts; each wake costs a lockstep sample's worth of executor time.
+        self.watchdog = self.create_timer(WATCHDOG_PERIOD, self._locked(self._watch), clock=wall)
+        with self.lock:
+            self.phase = IDLE
+            self.plant = None
+        self.configured = True
+        # Said at configure also because rclpy's logger finds its caller through inspect, whose first call in a
+        # process maps every loaded module to its file: 130 ms with numba, NumPy and rclpy loaded, measured. Its
+        # first warning of a stale command, under the lock, missed 7 to 12 real-time deadlines at once.
         scheduling = self.scheduling.current()
         self.get_logger().info(f'plant: joints {self.joints}, {self.settings.mode} mode, period '
                                f'{self.settings.period} s; {scheduling.policy} priority {scheduling.priority} on '
                                f'cores {list(scheduling.affinity)}')
-        if self.get_parameter('autostart').value:
-            self.start_episode()
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.launching:  # the unmanaged start: active, the episode started by autostart (or ~/reset)
+            self.active = True
+            return TransitionCallbackReturn.SUCCESS
+        try:
+            message = self.start_episode()
+        except (PlantError, ModelError, RobotError, ValueError) as error:
+            self.get_logger().error(f'activate refused: {error}')
+            return TransitionCallbackReturn.FAILURE
+        self.active = True
+        self.get_logger().info(f'activated: {json.loads(message)["message"]}')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._stop_ticks()
+        with self.lock:
+            self.active = False
+            ended = self.phase in (STARTING, RUNNING)
+            self.phase = IDLE
+            sample = self.plant.sample if self.plant is not None else 0
+        self.get_logger().info(f'deactivated{f" at sample {sample}, the episode ended" if ended else ""}: no more '
+                               'states, commands ignored, ~/reset refused until activated again')
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        """Back to unconfigured: the ticks stopped, the topics, timer and service made at configure destroyed."""
+        self._stop_ticks()  # no tick may publish on a destroyed publisher
+        with self.lock:
+            self.active = False
+            self.phase = IDLE
+            self.plant = None
+            self.destroy_entities('state_publisher', 'clock_publisher', 'diagnostics_publisher',
+                                  'command_subscription', 'reset_service', 'watchdog')
+            self._forget_configuration()
+
+    def _forget_configuration(self) -> None:
+        """What configure makes, unset: the node unconfigured."""
+        self.configured = False  # parameter changes are checked against the arm once configure built it
+        self.scheduling: NodeScheduling | None = None
+        self.arm: Arm | None = None
+        self.reduced_by: Reduction | None = None
+        self.joints: list[str] = []
+        self.state_encoder: JointStateEncoder | None = None
+        self.chain = None
+        self.robot: Robot | None = None
+        self.settings: PlantSettings | None = None
+        self.state_publisher = self.clock_publisher = self.diagnostics_publisher = None
+        self.command_subscription = self.reset_service = self.watchdog = None
 
     def _declare_parameters(self) -> None:
         double_array = Parameter.Type.DOUBLE_ARRAY
@@ -278,6 +361,9 @@ class PlantNode(Node):
             ('initial_position', double_array, descriptor('start position when trajectory = 0')),
             ('initial_velocity', double_array, descriptor('start velocity when trajectory = 0')),
             ('autostart', True, descriptor('start an episode at launch (else on ~/reset)')),
+            ('managed', False, descriptor('start unconfigured and wait for the lifecycle services (configure, '
+                                          'activate: activate starts an episode, as ~/reset does); false: '
+                                          'configured and activated at launch', read_only=True)),
             ('spin_margin', DEFAULT_SPIN_MARGIN, descriptor(
                 'realtime: s before each deadline the tick wakes and spins on the clock to it (0: no spin); '
                 'less than the period', floating=SPIN_MARGIN_RANGE)),
@@ -290,6 +376,8 @@ class PlantNode(Node):
         return proposed_values(self, changes)
 
     def _check_parameters(self, changes) -> SetParametersResult:
+        if not self.configured:  # checked, with the arm, at configure
+            return SetParametersResult(successful=True)
         values = self._parameter_values(changes)
         try:
             plant_settings(values, self.arm, self.reduced_by, self.robot)
@@ -342,6 +430,10 @@ class PlantNode(Node):
         return json.dumps({'message': message, 'parameters': plain_parameters(values)})
 
     def _on_reset(self, request, response):
+        if not self.active:
+            response.success, response.message = False, 'reset refused: the plant is inactive: activate it first'
+            self.get_logger().error(response.message)
+            return response
         try:
             response.message = self.start_episode()
             response.success = True

@@ -99,7 +99,6 @@ class RobotNode(ManagedNode):
         self.lock = threading.Lock()  # the real-time ticks and the executor's callbacks share the robot
         self.robot: SimulatedRobot | None = None
         self.phase = IDLE
-        self.configure_error: Exception | None = None
         self.ticker: threading.Thread | None = None
         self.ticks_stop = threading.Event()
         self.sample = 0
@@ -109,9 +108,7 @@ class RobotNode(ManagedNode):
         self.deadline = 0.0
         self.status_service = self.create_service(Trigger, '~/status', self._on_status)
         if self.get_parameter('autostart').value:
-            for transition, name in ((self.trigger_configure, 'configure'), (self.trigger_activate, 'activate')):
-                if transition() != TransitionCallbackReturn.SUCCESS:
-                    raise self.configure_error or RobotNodeError(f'the robot did not {name}')
+            self.launch(RobotNodeError)
 
     def _declare_parameters(self) -> None:
         double_array = Parameter.Type.DOUBLE_ARRAY
@@ -153,16 +150,8 @@ class RobotNode(ManagedNode):
 
     # Lifecycle ---------------------------------------------------------------------------------
 
-    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
-        try:
-            self._configure(proposed_values(self, ()))
-        except (RobotError, RealismError, ValueError) as error:
-            self.configure_error = error
-            self.get_logger().error(f'configure refused: {error}')
-            return TransitionCallbackReturn.FAILURE
-        return TransitionCallbackReturn.SUCCESS
-
-    def _configure(self, values: dict) -> None:
+    def _configure(self) -> None:
+        values = proposed_values(self, ())
         if not values['mjcf']:
             raise RobotNodeError('mjcf is not set: give the MuJoCo robot (-p mjcf:=FILE)')
         if values['mode'] not in MODES:
@@ -236,34 +225,14 @@ class RobotNode(ManagedNode):
         self.get_logger().info(f'deactivated at sample {self.sample}: no more states, commands ignored')
         return TransitionCallbackReturn.SUCCESS
 
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_ticks()
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._stop_ticks()
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
     def _release(self) -> None:
+        """Back to unconfigured: the ticks stopped, the topics and timer made at configure destroyed, the robot freed."""
+        self._stop_ticks()  # no tick may publish on a destroyed publisher
         with self.lock:
             self.phase = IDLE
             self.robot = None
-            for name, destroy in (('command_subscription', self.destroy_subscription),
-                                  ('state_publisher', self.destroy_publisher),
-                                  ('commanded_publisher', self.destroy_publisher),
-                                  ('clock_publisher', self.destroy_publisher),
-                                  ('diagnostics_publisher', self.destroy_publisher),
-                                  ('watchdog', self.destroy_timer)):
-                entity = getattr(self, name, None)
-                if entity is not None:
-                    destroy(entity)
-                setattr(self, name, None)
+            self.destroy_entities('command_subscription', 'state_publisher', 'commanded_publisher', 'clock_publisher',
+                                  'diagnostics_publisher', 'watchdog')
 
     def destroy_node(self) -> None:
         self._stop_ticks()  # no tick may publish on a destroyed publisher
