@@ -1,4 +1,4 @@
-# The two entry points of the README: `make run` (main job) and `make test`.
+# The README's two commands: `make run` (main job) and `make test`.
 # Each creates the virtual environment first if setup.py changed since it was made.
 PYTHON ?= python3
 VENV := .venv

@@ -87,7 +87,7 @@ def stability_warnings(warnings: list[str]) -> list[str]:
 
 
 def test_gains_beyond_the_coupled_loops_boundary_are_warned_naming_the_joints(capsys):
-    """README: PD + gravity on the Panda at ω = 15 (Δ = 0.01 s, d = 0) is unstable, which the ω rule cannot see."""
+    """docs/your-arm.md: PD + gravity on the Panda at ω = 15 (Δ = 0.01 s, d = 0) is unstable, which the ω rule cannot see."""
     summary = run_json(capsys, '--controller', 'pd_gravity', '--omega', '15', '--delay', '0', *PANDA)
     [warning] = stability_warnings(summary['warnings'])
     assert 'panda_joint1' in warning and 'spectral radius' in warning

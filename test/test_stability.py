@@ -305,7 +305,7 @@ def omega_rule_spec(controller: str, omega: float, delay: int, **arm) -> Episode
 
 
 def test_pd_gravity_on_the_panda_at_omega_15_is_warned_naming_its_coupled_joints():
-    """README: PD + gravity on the Panda at ω = 15, Δ = 0.01 s, d = 0 is unstable (its modal boundary near 3)."""
+    """docs/your-arm.md: PD + gravity on the Panda at ω = 15, Δ = 0.01 s, d = 0 is unstable (its modal boundary near 3)."""
     warnings = loop_stability_warnings(omega_rule_spec('pd_gravity', 15.0, 0, **PANDA))
     assert len(warnings) == 1 and 'stability boundary' in warnings[0] and 'at the goal q_f' in warnings[0]
     named = warnings[0].split('move mostly ')[1].split(', whose')[0].split(', ')

@@ -52,7 +52,7 @@ def test_a_budget_too_small_for_the_starts_is_refused(capsys, tmp_path):
 
 
 def test_tune_on_an_arm_of_the_user_writes_gains_by_joint_a_bag_and_a_report_page(capsys, tmp_path):
-    """The README's "Tuning your own arm": the Z1's URDF and motion (its gripper locked) to a controller YAML
+    """docs/your-arm.md, "Tuning your own arm": the Z1's URDF and motion (its gripper locked) to a controller YAML
     keyed by joint, the bag that confirms it, and report.md with its figure."""
     arm = ROOT / 'config' / 'arms' / 'z1'
     assert main(['tune', '--urdf', str(arm / 'z1.urdf'), '--motion', str(arm / 'z1-motion.yaml'),

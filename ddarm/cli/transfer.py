@@ -22,8 +22,8 @@ from ddarm.episodes.result import Episodes
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, check_episode, gains_from_omega
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET
 
-# The excitation episodes run under the ω rule at this ω (the README's identification recipe): gains that need
-# no model of the robot beyond the URDF, so the bags do not depend on the search's outcome.
+# The excitation episodes run under the ω rule at this ω (as docs/robots.md's `ddarm identify` records them): gains
+# that need no model of the robot beyond the URDF, so the bags do not depend on the search's outcome.
 EXCITATION_OMEGA = 15.0
 # The held-out episode starts disturbed (3.1) by this τ: another initial state than the fitted one's.
 CHECK_TAU = 0.3

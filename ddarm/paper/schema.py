@@ -1,4 +1,4 @@
-"""results.json as typed data: what `ddarm reproduce` writes and the report reads (README.md lists the keys).
+"""results.json as typed data: what `ddarm reproduce` writes and the report reads (docs/reproduce.md lists the keys).
 
 One definition for both sides: ddarm.paper.experiments builds these objects and writes `to_json()`;
 the report takes `Results.from_json`, which refuses a missing or unknown key, a value of the wrong

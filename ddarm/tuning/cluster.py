@@ -7,7 +7,7 @@ is sent, one task on each node with CPUs reports a fingerprint of its ddarm sour
 node that differs from this process is refused.
 
 Ray has no authentication: anyone who can reach a cluster's ports can run any code on it. Start clusters bound to
-127.0.0.1 or to a trusted private network only (README, `ddarm campaign`).
+127.0.0.1 or to a trusted private network only (docs/tuning.md, `ddarm campaign`).
 """
 
 from __future__ import annotations
@@ -168,7 +168,7 @@ class RayCluster:
             socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
         except OSError as error:
             raise ClusterError(f'--ray {address}: no Ray cluster answers there ({error}); start one with ray start '
-                               '--head (README: `ddarm campaign`)') from error
+                               '--head (docs/tuning.md: `ddarm campaign`)') from error
         loopback = is_loopback(host)
         if loopback:
             os.environ.setdefault(LOOPBACK_SWITCH, '0')  # read when ray is imported
