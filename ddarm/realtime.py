@@ -198,3 +198,46 @@ def run_ticks(start_ns: int, period: int, margin: int, tick: Callable[[int, int]
         if not tick(index, deadline):
             return
         index = next_tick(start_ns, period, index, clock())
+
+
+class TickThread:
+    """The real-time ticks of a node on a thread of their own: `run_ticks` from `start`, until the tick returns False
+    or `end` is called. A thread, not an rclpy timer: the executor's timer wakes its spinning thread through a
+    queue, a second wake-up's latency; this one sleeps to `margin` before each deadline and spins the rest.
+    `failed(error)` says an exception that stopped the ticks: no executor reports for this thread."""
+
+    def __init__(self, name: str, tick: Callable[[int, int], bool], failed: Callable[[Exception], None]) -> None:
+        self.name = name
+        self._tick = tick
+        self._failed = failed
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def thread(self) -> threading.Thread | None:
+        """The ticking thread (None before the first start and after a stop)."""
+        return self._thread
+
+    def start(self, start_ns: int, period: int, margin: int = 0) -> None:
+        """Tick at start_ns + kΔ (ns of CLOCK_MONOTONIC; `period` and `margin` in ns)."""
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True,
+                                        args=(start_ns, period, margin, self._stop))
+        self._thread.start()
+
+    def _run(self, start_ns: int, period: int, margin: int, stop: threading.Event) -> None:
+        try:
+            run_ticks(start_ns, period, margin, self._tick, stop)
+        except Exception as error:
+            self._failed(error)
+
+    def end(self) -> None:
+        """No tick after the one under way (if this is it, the thread ends when it returns); not waited for."""
+        self._stop.set()
+
+    def stop(self) -> None:
+        """End the ticks and wait for the thread (at most one tick's work), unless called from a tick."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+            self._thread = None

@@ -26,7 +26,7 @@ from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.mujoco_plant import MujocoPlant, Robot, RobotError, at_period, load_robot
 from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
                                  checked_mass_scale, warm_up)
-from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, period_ns, run_ticks
+from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, TickThread, period_ns
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
                                      descriptor, plain_parameters, proposed_values,
@@ -197,8 +197,7 @@ class PlantNode(ManagedNode):
         self.incompatible_qos_events = 0
         # The real-time ticks run on a thread of their own: every callback that touches the episode holds the lock.
         self.lock = threading.Lock()
-        self.ticker: threading.Thread | None = None
-        self.ticks_stop = threading.Event()
+        self.ticks = TickThread('plant-ticks', self._realtime_tick, self._ticks_failed)
         self.active = False  # ~/reset starts episodes only while active
         self._forget_configuration()
         self.phase = IDLE
@@ -474,27 +473,15 @@ class PlantNode(ManagedNode):
             # periods); frozen, a collection walks only what the episode allocates. No mlockall: the tick touches
             # its pages every period, and with no swap here there was no paging to measure.
             gc.freeze()
-            self.ticks_stop = threading.Event()
-            # A thread, not an rclpy timer: the executor's timer wakes its spinning thread through a queue, a
-            # second wake-up's latency; this one sleeps to `spin_margin` before the deadline and spins the rest.
-            self.ticker = threading.Thread(
-                target=self._run_ticks, name='plant-ticks', daemon=True,
-                args=(start, period_ns(self.settings.period), period_ns(self.settings.spin_margin)))
-            self.ticker.start()
+            self.ticks.start(start, period_ns(self.settings.period), period_ns(self.settings.spin_margin))
 
-    def _run_ticks(self, start: int, period: int, margin: int) -> None:
-        try:
-            run_ticks(start, period, margin, self._realtime_tick, self.ticks_stop)
-        except Exception as error:  # no executor reports for this thread: say it, and the driver names the stall
-            if self.context.ok():
-                self.get_logger().error(f'the real-time ticks stopped: {type(error).__name__}: {error}')
+    def _ticks_failed(self, error: Exception) -> None:
+        if self.context.ok():  # the driver names the stall
+            self.get_logger().error(f'the real-time ticks stopped: {type(error).__name__}: {error}')
 
     def _stop_ticks(self) -> None:
         """End the real-time ticks and wait for the thread (at most one tick's work): reset, destroy."""
-        self.ticks_stop.set()
-        if self.ticker is not None and self.ticker is not threading.current_thread():
-            self.ticker.join()
-            self.ticker = None
+        self.ticks.stop()
 
     def destroy_node(self) -> None:
         self._stop_ticks()  # no tick may publish on a destroyed publisher
@@ -502,7 +489,7 @@ class PlantNode(ManagedNode):
 
     def _end(self, level: bytes, event: str, message: str) -> None:
         self.phase = ENDED
-        self.ticks_stop.set()  # the tick thread ends after this tick (this may be it): joined at the next reset
+        self.ticks.end()  # the tick thread ends after this tick (this may be it): joined at the next reset
         # One call site per severity: rclpy refuses a call site that logs at another severity than before.
         if level == DiagnosticStatus.OK:
             self.get_logger().info(message)

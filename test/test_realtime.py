@@ -219,13 +219,13 @@ def test_a_reset_during_a_real_time_episode_stops_its_ticks_and_the_end_of_one_e
     try:
         plant.start_episode()
         spin_until(executor, lambda: plant.phase == RUNNING)
-        first = plant.ticker
+        first = plant.ticks.thread
         plant.start_episode()  # mid-episode: the old ticks end before the new episode's state is set
-        assert not first.is_alive() and plant.ticker is None
+        assert not first.is_alive() and plant.ticks.thread is None
         spin_until(executor, lambda: listener.ends() == ['complete'])
         assert plant.phase == ENDED
-        plant.ticker.join(timeout=10)
-        assert not plant.ticker.is_alive()
+        plant.ticks.thread.join(timeout=10)
+        assert not plant.ticks.thread.is_alive()
         report = listener.values()[-1]
         assert report['sample'] == '20' and report['sched_policy'] == scheduling_of(0).policy
     finally:

@@ -30,7 +30,7 @@ from ddarm.ros.executors import node_executor
 from ddarm.ros.interface import SAMPLE_QOS
 from ddarm.ros.robot_session import counted_faults
 from ddarm_control.node import ControllerNode
-from ddarm_sim.robot import RobotNode, RobotNodeError
+from ddarm_sim.robot_node import RobotNode, RobotNodeError
 from graph_helpers import call_service, lifecycle_state, spin_until
 from two_link import robot_mjcf, write_files
 

@@ -138,7 +138,7 @@ def ros_interface() -> str:
 
     from ddarm_control.node import ControllerNode
     from ddarm_sim.node import PlantNode
-    from ddarm_sim.robot import RobotNode
+    from ddarm_sim.robot_node import RobotNode
     from ddarm_tuner.node import TunerNode
 
     context = Context()

@@ -14,7 +14,7 @@ def command_plant(args: argparse.Namespace) -> int:
 
 
 def command_robot(args: argparse.Namespace) -> int:
-    from ddarm_sim.robot import main as robot_main
+    from ddarm_sim.robot_node import main as robot_main
 
     given = ['--ros-args', '-p', f'mjcf:={absolute_path(args.mjcf)}'] if args.mjcf else []
     return robot_main(['ddarm-robot', *args.ros_arguments, *given])

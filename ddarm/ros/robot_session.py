@@ -1,6 +1,6 @@
 """A robot's episode as a robot runs it: `ddarm robot` and the controller node in robot mode, recorded and scored.
 
-The robot (MuJoCo, `ddarm_sim.robot`) and the controller (sampling on a timer, the efforts as the
+The robot (MuJoCo, `ddarm_sim.robot_node`) and the controller (sampling on a timer, the efforts as the
 Float64MultiArray a ros2_control forward_command_controller takes) run as two processes in a namespace of their
 own, as `ddarm.ros.session` runs the plant's; this process only listens. What the two published (the robot's
 states, its record of the command in force at each sample, the efforts, /clock, /diagnostics) goes into an

@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 from ddarm.arrays import per_joint
 from ddarm.physics.mujoco_plant import RobotError, load_robot, robot_joints
 from ddarm.physics.simulated_robot import Realism, RealismError, SimulatedRobot
-from ddarm.realtime import SchedulingError, period_ns, run_ticks
+from ddarm.realtime import SchedulingError, TickThread, period_ns
 from ddarm.ros.cdr import JointStateEncoder, Stamp, encode_clock, stamp_of_ns
 from ddarm.ros.executable import run_node
 from ddarm.ros.lifecycle import ManagedNode
@@ -99,8 +99,7 @@ class RobotNode(ManagedNode):
         self.lock = threading.Lock()  # the real-time ticks and the executor's callbacks share the robot
         self.robot: SimulatedRobot | None = None
         self.phase = IDLE
-        self.ticker: threading.Thread | None = None
-        self.ticks_stop = threading.Event()
+        self.ticks = TickThread('robot-ticks', self._realtime_tick, self._ticks_failed)
         self.sample = 0
         self.first_sample = FIRST_SAMPLE
         self.start_ns = 0  # realtime: the node's clock at sample 0 of the robot's ticks
@@ -275,23 +274,14 @@ class RobotNode(ManagedNode):
         self.start_ns = self.get_clock().now().nanoseconds
         self._publish_state()
         self._integrate(now * 1e-9)  # period 0, under the effort in force at the start (none yet): out at tick 1
-        self.ticks_stop = threading.Event()
-        self.ticker = threading.Thread(target=self._run_ticks, name='robot-ticks', daemon=True,
-                                       args=(now, period_ns(self.period)))
-        self.ticker.start()
+        self.ticks.start(now, period_ns(self.period))
 
-    def _run_ticks(self, start: int, period: int) -> None:
-        try:
-            run_ticks(start, period, 0, self._realtime_tick, self.ticks_stop)
-        except Exception as error:  # no executor reports for this thread: say it
-            if self.context.ok():
-                self.get_logger().error(f'the real-time ticks stopped: {type(error).__name__}: {error}')
+    def _ticks_failed(self, error: Exception) -> None:
+        if self.context.ok():
+            self.get_logger().error(f'the real-time ticks stopped: {type(error).__name__}: {error}')
 
     def _stop_ticks(self) -> None:
-        self.ticks_stop.set()
-        if self.ticker is not None and self.ticker is not threading.current_thread():
-            self.ticker.join()
-            self.ticker = None
+        self.ticks.stop()
 
     def _realtime_tick(self, index: int, deadline: int) -> bool:
         """Tick `index`, due at `deadline` (ns), as a robot's control cycle runs: the state of this sample goes out,
