@@ -27,10 +27,12 @@ RUN = 'The run folder'
 EPISODE, SCORE, BENCH = '`ddarm episode --json`', '`ddarm score --json`', '`ddarm bench --json`'
 TUNE, VALIDATE, OMEGA = '`ddarm tune`', '`ddarm validate`', '`ddarm omega`'
 REPRODUCE = '`ddarm reproduce`: results.json'
+STABILITY, PARETO, IDENTIFY = '`ddarm stability --json`', '`ddarm pareto --json`', '`ddarm identify --json`'
+CAMPAIGN, TRANSFER = '`ddarm campaign`', '`ddarm transfer`'
 JSON, FOLDER, SUMMARY = '`--json`', 'Run folder', 'summary.json'
 
 # Conditional rows this test does not produce (each costs a minute or more), named so that a new one is noticed.
-NOT_RUN = {(BENCH, ''): {'ros'}}
+NOT_RUN = {(BENCH, ''): {'ros'}, (TRANSFER, FOLDER): {'identified-sample-<k>.urdf'}}
 
 _ROW = re.compile(r'^\| `([^`]+)` \|')
 
@@ -184,6 +186,71 @@ def test_omega(work):
 
 def test_bench_json(work):
     same(run_json(work, 'bench', '--episodes', '200', '--scalar-episodes', '5'), expected(BENCH), 'ddarm bench --json')
+
+
+def test_stability_json(work):
+    same(run_json(work, 'stability'), expected(STABILITY), 'ddarm stability --json')
+    same(run_json(work, 'stability', '--controller', 'pd_gravity', '--delay', '0', '--period', '0.01'),
+         expected(STABILITY, '', {'period', 'joint_names', 'modes'}), 'ddarm stability --controller pd_gravity --json')
+
+
+def test_pareto_json(work):
+    same(run_json(work, 'pareto', '--controller', LAW, '--budget', '200', '--tune-budget', '200', '--points', '5'),
+         expected(PARETO), 'ddarm pareto --json')
+
+
+def two_link_robot(work: Path) -> None:
+    """test_identify.py's two-link robot (robot.xml) and its nominal URDF (nominal.urdf)."""
+    from test_identify import ROBOT_MJCF
+    from two_link import URDF
+
+    (work / 'robot.xml').write_text(ROBOT_MJCF)
+    (work / 'nominal.urdf').write_text(URDF)
+
+
+def test_identify_json(work):
+    """On two small excitation bags of test_identify.py's two-link robot (one fitted, one held out)."""
+    from test_identify import excitation
+
+    two_link_robot(work)
+    for name, phase in (('fit', 0.0), ('check', 0.7)):
+        excitation(work / f'{name}.yaml', 6.0, phase)
+        run(work, 'episode', '--controller', LAW, '--omega', '15', '--urdf', 'nominal.urdf', '--motion',
+            f'{name}.yaml', '--mjcf', 'robot.xml', '--ros', '--bag', name, '--json')
+    printed = run_json(work, 'identify', 'fit', '--validate', 'check', '--urdf', 'nominal.urdf', '--out',
+                       'identified.urdf')
+    same(printed, expected(IDENTIFY), 'ddarm identify --json')
+
+
+def test_campaign(work):
+    (work / 'campaign.yaml').write_text(f'index: I\nbudget: 200\narms:\n  - name: paper\nmotions:\n'
+                                        f'  - {{name: t1, trajectory: 1}}\nlaws: [{LAW}]\nscenarios:\n'
+                                        f'  - name: nominal\n')
+    (work / 'runs').mkdir(exist_ok=True)
+    printed = run_json(work, 'campaign', 'campaign.yaml', '--out', 'runs/campaign', '--jobs', '1')
+    folder = work / 'runs' / 'campaign'
+    produced = {'SUMMARY.md', 'index-per-job.png'}
+    same(entries(folder), expected(CAMPAIGN, FOLDER, produced, common_files()), 'the campaign run folder')
+    summary = summary_keys(folder)
+    same(summary, expected(CAMPAIGN, SUMMARY, {'table', 'plot'}, common_summary()), 'the campaign summary.json')
+    assert printed == summary, 'ddarm campaign --json prints summary.json'
+
+
+def test_transfer(work):
+    """On test_identify.py's two-link robot, with small budgets and a short excitation."""
+    from test_identify import excitation
+
+    two_link_robot(work)
+    excitation(work / 'transfer-motion.yaml', 6.0, 0.0)
+    (work / 'runs').mkdir(exist_ok=True)
+    printed = run_json(work, 'transfer', '--controller', LAW, '--urdf', 'nominal.urdf', '--motion',
+                       'transfer-motion.yaml', '--mjcf', 'robot.xml', '--budget', '100', '--excite-duration', '3',
+                       '--runs', 'runs', '--run', 'transfer')
+    folder = work / 'runs' / 'transfer'
+    same(printed, expected(TRANSFER, JSON), 'ddarm transfer --json')
+    same(entries(folder), expected(TRANSFER, FOLDER, base=common_files()), 'the transfer run folder')
+    summary = summary_keys(folder)
+    same(summary, expected(TRANSFER, SUMMARY, base=common_summary()), 'the transfer summary.json')
 
 
 def test_reproduce_results_json_keys_are_the_schema():
