@@ -17,7 +17,14 @@ def ddarm(*arguments: str) -> subprocess.Popen:
 
 
 def finished_json(process: subprocess.Popen, timeout: float = 180.0) -> dict:
-    out, err = process.communicate(timeout=timeout)
+    """The JSON a ddarm process printed; one that does not end within `timeout` s is killed (left running, one stuck
+    in its shutdown spun a core for the rest of the suite) and the test fails naming it."""
+    try:
+        out, err = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, err = process.communicate()
+        raise AssertionError(f'{process.args} did not end within {timeout} s (killed): {err[-2000:]}') from None
     assert process.returncode == 0, err
     return json.loads(out)
 
