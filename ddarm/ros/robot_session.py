@@ -35,7 +35,8 @@ from ddarm.episodes.result import Episodes
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
 from ddarm.errors import DdarmError
 from ddarm.recording.bags import (ROBOT_COMMANDED_TOPIC, ROBOT_COMMANDS_TOPIC, ROBOT_TOPICS, SAMPLE_0_KEY,
-                                  BagError, EpisodeBagWriter, bag_result, checked_output_path, read_episode_bag, score_bag)
+                                  BagError, EpisodeBagWriter, bag_result, checked_output_path, read_episode_bag,
+                                  score_bag)
 from ddarm.ros.cdr import read_stamp
 from ddarm.ros.driver import qos_description
 from ddarm.ros.executors import node_executor
@@ -234,9 +235,15 @@ def record_robot_episode(spec: EpisodeSpec, bag: Path | str, mode: str = 'lockst
                         stdout=log, stderr=subprocess.STDOUT, env=node_environment(folder), start_new_session=True)
             deadline = time.monotonic() + timeout + plan.k_max * spec.period * (1 if mode == 'realtime' else 0.1)
             while not recorder.heard_through(plan.k_max, spec.period):
-                _check(processes, folder, deadline, 'the robot episode did not finish in time: ' + (
-                    'no command reached the robot' if recorder.sample_0_ns is None else
-                    f'heard states to {recorder.last_state_ns} ns from sample 0 at {recorder.sample_0_ns} ns'))
+                if time.monotonic() > deadline and all(process.poll() is None for process in processes.values()):
+                    # Stalled, the nodes alive: what they counted (a controller refusing unsafe states, say) says why.
+                    faults = counted_faults({name: recorder.status(executor, name)
+                                             for name in ('robot', spec.controller)})
+                    raise RobotEpisodeError('the robot episode did not finish in time: ' + (
+                        'no command reached the robot' if recorder.sample_0_ns is None else
+                        f'heard states to {recorder.last_state_ns} ns from sample 0 at {recorder.sample_0_ns} ns')
+                        + ''.join(f'; {fault}' for fault in faults) + f'; robot: {_tail(folder / "robot.log")}')
+                _check(processes, folder, deadline, 'the robot episode did not finish in time')
                 executor.spin_once(timeout_sec=0.05)
             counters = {name: recorder.status(executor, name) for name in ('robot', spec.controller)}
             naming = time.monotonic() + NAMING_TIMEOUT
@@ -275,5 +282,6 @@ def _write_robot_bag(bag: Path, episode: dict, plan: EpisodePlan, messages: list
         writer.write('/reference', first, serialize_message(reference))
         for topic, heard_ns, data in messages:
             writer.write(topic, heard_ns, data)
-        writer.set_publishers({topic: [name for name in names if name is not None] for topic, names in publishers.items()})
+        writer.set_publishers({topic: [name for name in names if name is not None]
+                               for topic, names in publishers.items()})
         writer.close(complete=True)
