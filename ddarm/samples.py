@@ -27,6 +27,11 @@ class MessageError(DdarmError, ValueError):
     """A message that cannot be used as it is; the text names the problem."""
 
 
+def stamp_ns(stamp) -> int:
+    """A stamp (a builtin_interfaces/Time, a Clock's clock, ddarm's Stamp: sec and nanosec) in integer ns, exact."""
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
 def sample_at(t: float, period: float) -> int:
     """n for a time t_n = n Δ; refuses a negative time or one between sample instants."""
     n = round(t / period)

@@ -32,7 +32,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
-from ddarm.samples import MAX_JOINTS, MAX_SAMPLES, MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.samples import (MAX_JOINTS, MAX_SAMPLES, MessageError, checked_reference, finite_array, joint_order,
+                           sample_at, stamp_ns)
 from ddarm.episodes.indices import IndicesError
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
@@ -467,12 +468,9 @@ def _repeated(keys) -> list:
 def _by_sample(path: Path, topic: str, messages: list, period: float, sample_0_ns: int = 0) -> dict:
     """Sample index -> the one message stamped at it, counted from the stamp of sample 0 (a robot's states before
     it, while it waited for its controller, are not the episode's); two for one sample are refused, not overwritten."""
-    def stamp_ns(message) -> int:
-        return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
-
-    messages = [message for message in messages if stamp_ns(message) >= sample_0_ns]
+    messages = [message for message in messages if stamp_ns(message.header.stamp) >= sample_0_ns]
     try:
-        samples = [sample_at((stamp_ns(message) - sample_0_ns) * 1e-9, period) for message in messages]
+        samples = [sample_at((stamp_ns(message.header.stamp) - sample_0_ns) * 1e-9, period) for message in messages]
     except MessageError as error:
         raise BagError(f'{topic}: {error}' + (f' (counted from sample 0 at {sample_0_ns} ns)' if sample_0_ns else '')
                        ) from error
@@ -529,8 +527,8 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
         for connection in reader.connections:
             by_topic[connection.topic].append(connection)
         # A robot's bag holds the robot's record of its commands where a plant's holds the stamped commands.
-        commands_topic = (ROBOT_COMMANDED_TOPIC if '/effort_command' not in by_topic and ROBOT_COMMANDED_TOPIC in by_topic
-                          else '/effort_command')
+        robot_bag = '/effort_command' not in by_topic and ROBOT_COMMANDED_TOPIC in by_topic
+        commands_topic = ROBOT_COMMANDED_TOPIC if robot_bag else '/effort_command'
         required = tuple(commands_topic if topic == '/effort_command' else topic for topic in REQUIRED_TOPICS)
         missing = [topic for topic in required if topic not in by_topic]
         if missing:
@@ -573,7 +571,7 @@ def _read(path: Path, require_complete: bool) -> BagEpisode:
                                     for point in reference.points), joints, period)
     except MessageError as error:
         raise BagError(f'{path}: /reference: {error}') from error
-    stamps = [message.clock.sec * 1_000_000_000 + message.clock.nanosec for message in messages.get('/clock', [])]
+    stamps = [stamp_ns(message.clock) for message in messages.get('/clock', [])]
     repeated = _repeated(stamps)
     if repeated:
         raise BagError(f'{path}: /clock holds more than one message at t = {[t * 1e-9 for t in repeated[:10]]} s: '

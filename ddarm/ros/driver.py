@@ -32,7 +32,7 @@ from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL,
                                        SchedulingOptions, arm_parameters, node_parameters, same_read_only,
                                        service_parameters)
-from ddarm.samples import MessageError
+from ddarm.samples import MessageError, stamp_ns
 from ddarm.recording.bags import BagError, EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
@@ -154,10 +154,6 @@ class Recording:
         """What came, for a message that says why an episode did not end."""
         return (f'heard states up to sample {self.latest_state}, {len(self.commands)} of {self.k_max + 1} commands, '
                 f"{len(self.clock_ticks)} clock ticks, {'a' if self.plant_report else 'no'} plant report")
-
-
-def _stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def qos_description(profile) -> dict:
@@ -361,7 +357,7 @@ class GraphDriver(Node):
         # Kept, and written to the bag in batches (`_write_bag`): a bag write costs as much as the rest of a
         # message's handling, and batched it stays off the path of most samples.
         if self.bag is not None and self.recording is not None:
-            self._unwritten.append((topic, _stamp_ns(stamp), data))
+            self._unwritten.append((topic, stamp_ns(stamp), data))
             if len(self._unwritten) >= UNWRITTEN_LIMIT:
                 self._write_bag()
 

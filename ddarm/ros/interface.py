@@ -23,7 +23,8 @@ from ddarm.ros.cdr import stamp_of
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
-from ddarm.samples import MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at
+from ddarm.samples import (MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at,
+                           stamp_ns)
 
 JOINT_STATES_TOPIC = 'joint_states'
 EFFORT_COMMAND_TOPIC = 'effort_command'
@@ -136,7 +137,7 @@ def read_robot_state(msg: JointState, joints: list[str], what: str = 'joint stat
             raise MessageError(f'{what}: {label} is not finite for {bad}: {ours[~np.isfinite(ours)].tolist()}')
         return ours
 
-    stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    stamp = stamp_ns(msg.header.stamp)
     return RobotState(stamp, field(msg.position, 'position'), field(msg.velocity, 'velocity'))
 
 

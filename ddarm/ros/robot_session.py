@@ -38,6 +38,7 @@ from ddarm.recording.bags import (ROBOT_COMMANDED_TOPIC, ROBOT_COMMANDS_TOPIC, R
                                   BagError, EpisodeBagWriter, bag_result, checked_output_path, read_episode_bag,
                                   score_bag)
 from ddarm.ros.cdr import read_stamp
+from ddarm.samples import stamp_ns
 from ddarm.ros.driver import qos_description
 from ddarm.ros.executors import node_executor
 from ddarm.ros.lifetime import stop_processes
@@ -88,11 +89,6 @@ def controller_node_parameters(spec: EpisodeSpec, mode: str) -> dict:
     return parameters
 
 
-def _stamp_ns(data: bytes, what: str) -> int:
-    stamp = read_stamp(data, what)
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
 class RobotRecorder(Node):
     """Listens to one robot episode's topics in `namespace` and keeps every message, as heard, for its bag."""
 
@@ -126,9 +122,9 @@ class RobotRecorder(Node):
         def keep(data: bytes) -> None:
             self.messages.append((topic, time.time_ns(), data))
             if topic == '/joint_states':
-                self.last_state_ns = _stamp_ns(data, topic)
+                self.last_state_ns = stamp_ns(read_stamp(data, topic))
             elif topic == ROBOT_COMMANDED_TOPIC:
-                stamp = _stamp_ns(data, topic)
+                stamp = stamp_ns(read_stamp(data, topic))
                 if self.sample_0_ns is None:
                     self.sample_0_ns = stamp  # the robot's first period with a command in force
                 self.last_commanded_ns = stamp
