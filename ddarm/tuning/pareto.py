@@ -46,7 +46,7 @@ from pymoo.core.problem import Problem
 from pymoo.problems.static import StaticProblem
 from pymoo.util.nds.non_dominated_sorting import NonDominatedSorting
 
-from ddarm.episodes.engine import simulate_batch
+from ddarm.episodes.engine import BatchRunner
 from ddarm.episodes.spec import EpisodeSpec, plan_episode
 from ddarm.interrupts import check_stop
 from ddarm.tuning.methods import DEFAULT_BUDGET, DEFAULT_POINTS, DEFAULT_POPULATION, DEFAULT_SEARCHES, ParetoError
@@ -122,6 +122,7 @@ class _Archive:
     def __init__(self, template: EpisodeSpec, budget: int, progress) -> None:
         self.template = template
         self.plan = plan_episode(template)
+        self.run_batch = BatchRunner(template, self.plan)
         self.dof = self.plan.q_ref.shape[1]
         self.budget = budget
         self.progress = progress
@@ -142,7 +143,7 @@ class _Archive:
         """(I1, I2, scored fraction) of gains (P, 2n), (kp, kv) per row, in one batch; the fraction is 1 for a
         bounded episode and that of the samples before the divergence for a diverged one (its I1 and I2 are +inf)."""
         check_stop()
-        batch = simulate_batch(self.template, gains[:, :self.dof], gains[:, self.dof:], plan=self.plan)
+        batch = self.run_batch(gains[:, :self.dof], gains[:, self.dof:])
         bounded = ~batch.diverged
         self.episodes += len(gains)
         self.diverged += int(batch.diverged.sum())

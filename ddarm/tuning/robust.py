@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ddarm.episodes.engine import run_episode
-from ddarm.episodes.spec import EpisodeError, EpisodePlan, EpisodeSpec, arm_joints, check_episode, plan_episode
+from ddarm.episodes.engine import BatchRunner, run_episode
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, checked_tau
 from ddarm.physics.arm import default_urdf_path
@@ -141,7 +141,7 @@ class ScenarioBatch:
     """
 
     template: EpisodeSpec
-    plan: EpisodePlan
+    runner: BatchRunner  # the template's batches, planned once for the whole search
     members: tuple[int, ...]
     taus: np.ndarray
     mass_scales: np.ndarray
@@ -155,10 +155,10 @@ def scenario_batches(scenarios: tuple[EpisodeSpec, ...]) -> tuple[ScenarioBatch,
     batches = []
     for members in groups.values():
         template = scenarios[members[0]]
-        plan = plan_episode(template)
-        dof = plan.q_ref.shape[1]
+        runner = BatchRunner(template)
+        dof = runner.dof
         batches.append(ScenarioBatch(
-            template, plan, tuple(members), np.array([scenarios[m].tau for m in members], dtype=float),
+            template, runner, tuple(members), np.array([scenarios[m].tau for m in members], dtype=float),
             np.array([scenarios[m].mass_scale or (1.0,) * dof for m in members], dtype=float)))
     return tuple(batches)
 

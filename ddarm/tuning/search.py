@@ -19,7 +19,6 @@ import numpy as np
 import scipy.optimize
 
 from ddarm.errors import DdarmError
-from ddarm.episodes.engine import simulate_batch
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeSpec, arm_joints, gains_from_omega
 from ddarm.interrupts import check_stop
@@ -144,10 +143,9 @@ class _Objective:
             repeats = len(group.members)
             varied = {} if repeats == 1 else {'tau': np.repeat(group.taus, count),
                                               'mass_scale': np.repeat(group.mass_scales, count, axis=0)}
-            batch = simulate_batch(group.template, np.tile(kp, (repeats, 1)), np.tile(kv, (repeats, 1)),
-                                   plan=group.plan, **varied)
+            batch = group.runner(np.tile(kp, (repeats, 1)), np.tile(kv, (repeats, 1)), **varied)
             self.batch_calls += 1
-            scored_fraction = batch.samples_scored / (group.plan.k_max + 1)
+            scored_fraction = batch.samples_scored / (group.runner.plan.k_max + 1)
             value = np.where(batch.diverged, DIVERGED_PENALTY * (2.0 - scored_fraction), getattr(batch, self.field))
             values[:, group.members] = value.reshape(repeats, count).T
             diverged[:, group.members] = batch.diverged.reshape(repeats, count).T

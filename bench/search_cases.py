@@ -1,0 +1,73 @@
+"""How close `ddarm tune`'s default search comes to the best known minima of a set of cases, and how fast.
+
+Each case is a `ddarm tune` command with the best minimum an independent search found (`objective`), as in
+../shared/search-cases.json. For each case this runs the search that command runs (in-process, as `ddarm tune`
+does, without the recording) and prints the best known and found minima side by side, the gap, the search's
+wall time and episodes, and its certificate when it gives one.
+
+    .venv/bin/python bench/search_cases.py ../shared/search-cases.json ../shared/search-cases-arms.json
+    .venv/bin/python bench/search_cases.py CASES.json --only 0 3 --json results.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ddarm.cli.arguments import episode_spec
+from ddarm.cli.main import build_parser
+from ddarm.episodes.engine import warm_up
+from ddarm.tuning.tune import tune
+
+
+def run_case(case: dict) -> dict:
+    words = shlex.split(case['command'])
+    args = build_parser().parse_args(words[1:])
+    template = episode_spec(args)
+    started = time.perf_counter()
+    tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed)
+    wall = time.perf_counter() - started
+    search = tuning.search
+    certificate = getattr(search, 'certificate', None)
+    return {
+        'command': case['command'], 'best_known': case['objective'], 'found': float(search.index),
+        'gap': float(search.index) / case['objective'] - 1.0, 'wall_time_s': wall, 'episodes': search.episodes,
+        'episodes_per_s': search.episodes / wall,
+        'certificate': None if certificate is None else certificate.to_dict(),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('cases', nargs='+', type=Path, help='JSON files of cases')
+    parser.add_argument('--only', type=int, nargs='+', help='the cases to run, by their number in the listing')
+    parser.add_argument('--json', type=Path, help='write the results here too')
+    options = parser.parse_args()
+    cases = [case for path in options.cases for case in json.loads(path.read_text())]
+    warm_up()
+    results = []
+    print(f"{'#':>2}  {'best known':>12}  {'found':>12}  {'gap':>8}  {'wall s':>7}  {'episodes':>8}  certificate")
+    for number, case in enumerate(cases):
+        if options.only is not None and number not in options.only:
+            continue
+        result = run_case(case)
+        results.append(result)
+        certificate = result['certificate']
+        print(f"{number:>2}  {result['best_known']:>12.6g}  {result['found']:>12.6g}  {100 * result['gap']:>7.2f}%  "
+              f"{result['wall_time_s']:>7.1f}  {result['episodes']:>8}  "
+              f"{'' if certificate is None else certificate['summary']}", flush=True)
+    gaps = np.array([result['gap'] for result in results])
+    print(f'within 1 %: {int(np.sum(gaps <= 0.01))} of {len(results)}; worst gap {100 * gaps.max():.2f} %')
+    if options.json is not None:
+        options.json.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
