@@ -26,8 +26,8 @@ from ddarm.episodes.engine import warm_up
 from ddarm.tuning.tune import tune
 
 
-def run_case(case: dict) -> dict:
-    words = shlex.split(case['command'])
+def run_case(case: dict, budget: int | None = None) -> dict:
+    words = shlex.split(case['command']) + ([] if budget is None else ['--budget', str(budget)])
     args = build_parser().parse_args(words[1:])
     template = episode_spec(args)
     started = time.perf_counter()
@@ -48,6 +48,7 @@ def main() -> int:
     parser.add_argument('cases', nargs='+', type=Path, help='JSON files of cases')
     parser.add_argument('--only', type=int, nargs='+', help='the cases to run, by their number in the listing')
     parser.add_argument('--json', type=Path, help='write the results here too')
+    parser.add_argument('--budget', type=int, help="each case's --budget (default: its command's, or ddarm tune's)")
     options = parser.parse_args()
     cases = [case for path in options.cases for case in json.loads(path.read_text())]
     warm_up()
@@ -56,7 +57,7 @@ def main() -> int:
     for number, case in enumerate(cases):
         if options.only is not None and number not in options.only:
             continue
-        result = run_case(case)
+        result = run_case(case, options.budget)
         results.append(result)
         certificate = result['certificate']
         print(f"{number:>2}  {result['best_known']:>12.6g}  {result['found']:>12.6g}  {100 * result['gap']:>7.2f}%  "

@@ -127,7 +127,7 @@ def test_without_json_a_table_names_the_ends_and_the_least_I_point(capsys):
     (['--points', '2'], '--points'),
     (['--seed', '-1'], '--seed'),
     (['--plot', 'front.txt'], '--plot'),
-    (['--tune-budget', '10'], '--tune-budget'),
+    (['--tune-budget', '5'], '--tune-budget'),
 ])
 def test_bad_options_are_refused_in_one_line_naming_the_option(capsys, arguments, option):
     try:

@@ -157,7 +157,7 @@ def tuned(work) -> tuple[dict, Path]:
 def test_tune(tuned):
     printed, folder = tuned
     assert printed['agree']
-    same(printed, expected(TUNE, JSON, {'robust'}), 'ddarm tune --json')
+    same(printed, expected(TUNE, JSON, {'robust', 'certificate'}), 'ddarm tune --json')
     same(entries(folder), expected(TUNE, FOLDER, {f'{LAW}.yaml'}, common_files()), 'the tune run folder')
     summary = summary_keys(folder)
     same(summary, expected(TUNE, SUMMARY, base=common_summary()), 'the tune summary.json')

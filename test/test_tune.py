@@ -81,3 +81,21 @@ def test_tune_on_an_arm_of_the_user_writes_gains_by_joint_a_bag_and_a_report_pag
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_a_global_search_that_did_not_converge_says_so_beside_its_gains(capsys, tmp_path):
+    assert main(['tune', '--controller', 'pd_gravity', '--index', 'I', '--delay', '0', '--budget', '300',
+                 '--omegas', '10', '15', '--runs', str(tmp_path), '--run', 'small',
+                 '--out', str(tmp_path / 'gains.yaml')]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    verdict = [line for line in printed if 'not converged' in line]
+    assert len(verdict) == 1 and verdict[0].strip().startswith('WARNING: not converged: ')
+    assert 'try --budget 600' in verdict[0]
+    assert printed.index(verdict[0]) < min(printed.index(line) for line in printed if ' kp = ' in line)
+    report = json.loads((tmp_path / 'small' / 'summary.json').read_text())['tune']
+    assert report['converged'] is False and report['certificate']['converged'] is False
+    assert report['certificate']['summary'] in verdict[0]
+    assert len(report['certificate']['runs']) == len(report['restarts'])
+    assert report['episodes'] <= 300
+    assert '**Not converged**' in (tmp_path / 'small' / 'report.md').read_text()
+    assert 'the search did not converge' in (tmp_path / 'gains.yaml').read_text()

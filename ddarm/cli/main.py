@@ -102,11 +102,13 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument('--index', type=index_name, required=True, metavar='{I1,I2,I}',
                       help='the index minimised: I1 (2.5), I2, or I = I1 + I2 (3.2); 2.5 and 3.2 also name them')
     tune.add_argument('--method', choices=METHODS, default=DEFAULT_METHOD,
-                      help='global: differential evolution, then local CMA-ES runs (default); nelder-mead: '
+                      help='global: Nelder-Mead from the ω-rule starts of both laws, then differential evolutions '
+                           'and wide CMA-ES runs until enough independent runs agree (default); nelder-mead: '
                            'multi-start Nelder-Mead from the ω-rule gains (the paper-style local search); cma: '
                            'one CMA-ES run from the best ω-rule start')
     tune.add_argument('--budget', type=int, default=DEFAULT_TUNE_BUDGET,
-                      help=f'most episodes evaluated ({DEFAULT_TUNE_BUDGET})')
+                      help=f'most episodes evaluated ({DEFAULT_TUNE_BUDGET}); a ceiling: the global search stops '
+                           'earlier once its certificate holds')
     tune.add_argument('--omegas', type=finite, nargs='+', default=list(SEARCH_START_OMEGAS),
                       metavar='W', help='ω of the ω-rule start gains (8 12 15 20 30)')
     tune.add_argument('--seed', type=seed, default=0, help='random seed of DE and CMA-ES (0)')

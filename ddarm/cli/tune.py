@@ -88,7 +88,7 @@ def command_tune(args: argparse.Namespace) -> int:
     label = 'search' if scenarios is None else f'robust search ({len(scenarios)} scenarios)'
     with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
         tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed, progress=bar.update,
-                      scenarios=scenarios, aggregate=objective)
+                      scenarios=scenarios, aggregate=objective, measure_batch_rate=True)
     best_gains = dataclasses.replace(template, kp=tuple(tuning.search.kp), kv=tuple(tuning.search.kv))
     tuning = dataclasses.replace(tuning, warnings=tuple(tuning.warnings) + tuple(loop_stability_warnings(
         best_gains, 'the tuned gains')))
@@ -124,11 +124,15 @@ def print_tuning(report: dict, tuning) -> None:
     from ddarm.tuning.report import local_runs_text
 
     print(f"{report['controller']}, index ({report['index']}), {report['method']}: {tuning.search.episodes} "
-          f"episodes in {tuning.wall_time_s:.2f} s ({tuning.episodes_per_s:.0f} episodes/s)")
+          f"episodes in {tuning.wall_time_s:.2f} s ({tuning.episodes_per_s:.0f} episodes/s; the engine's batch rate "
+          f"on this episode: {tuning.batch_episodes_per_s:.0f})")
     print(f"  starts (ω rules {format_vector(tuning.start_omegas)}): {report['index']} = "
           f"{format_vector(tuning.start_indices)}")
     if report['restarts']:
         print(f'  {local_runs_text(report)}')
+    if 'certificate' in report:
+        certificate = report['certificate']
+        print(f"  {'' if certificate['converged'] else 'WARNING: '}{certificate['summary']}")
     width = max(len(name) for name in report['joint_names'])
     for name, gains in report['gains'].items():
         print(f"  {name:<{width}}  kp = {gains['p']:.6g}  kv = {gains['d']:.6g}")

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ddarm.episodes.engine import run_episode, simulate_batch
+from ddarm.episodes.engine import BatchRunner, run_episode, simulate_batch
 from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 
 # Issue 5's reference case: computed torque with the ω = 15 rule, trajectory 1, T = 1 s, Δ = 0.01 s, delay 1.
@@ -85,6 +85,16 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
         'warmup_s': warmup, 'peak_rss_mib': peak_rss_mib(),
     }
 
+
+
+def batch_rate(template: EpisodeSpec, episodes: int = 1000, seed: int = 0) -> float:
+    """`ddarm bench`'s batch rate on `template`'s episode, in episodes/s: `episodes` perturbed around its gains in one
+    call on all cores, the plan made beforehand (what a search's large batches can reach)."""
+    kp, kv = perturbed_gains(template, episodes, seed)
+    runner = BatchRunner(template)
+    started = time.perf_counter()
+    runner(kp, kv)
+    return episodes / (time.perf_counter() - started)
 
 
 def batch_rates(template: EpisodeSpec, sizes=BATCH_SIZES, seed: int = 0, threads: int | None = None,

@@ -33,7 +33,7 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, paper_motio
 from ddarm.paper import typed
 from ddarm.tuning.methods import DEFAULT_POPULATION
 from ddarm.tuning.procedures import steady_state_error_per_unit_gain
-from ddarm.tuning.search import LOCAL_POPSIZE
+from ddarm.tuning.search import least_budget
 
 SETTINGS_PATH = Path(__file__).resolve().parent / 'data' / 'settings.yaml'
 
@@ -364,10 +364,10 @@ def _check_claims_and_budgets(settings: PaperSettings, joints: int, fail) -> Non
     if not (math.isfinite(ratio.high) and ratio.high >= ratio.low):
         fail(f'claims.table4_I1_ratio.high must be finite and at least low = {ratio.low!r}, got {ratio.high!r}')
     # Each search (ddarm.paper.experiments.optimise) is the global search: ddarm.tuning.search.search_gains
-    # refuses a budget below its ω-rule starts and one local population; the robust search has the nominal optimum
+    # refuses a budget below its ω-rule starts and their simplices; the robust search has the nominal optimum
     # as one more start, and each point costs an episode per scenario; the front needs its two seeds and a first
     # population.
-    search_least = len(SEARCH_START_OMEGAS) + LOCAL_POPSIZE
+    search_least = least_budget('global', len(SEARCH_START_OMEGAS), 2 * joints)
     scenarios = len(settings.beyond.robust.taus) * len(settings.beyond.robust.mass_scales)
     for name in ('full', 'quick'):
         budget, key = getattr(settings.budgets, name), f'budgets.{name}'

@@ -8,7 +8,7 @@ METHODS = ('global', 'nelder-mead', 'cma')
 DEFAULT_METHOD = 'global'
 # `ddarm tune`'s budget, and that of `ddarm pareto`'s single-index searches: enough for differential evolution's
 # generations and the local runs on a 6-joint arm.
-DEFAULT_TUNE_BUDGET = 6000
+DEFAULT_TUNE_BUDGET = 100_000
 # `ddarm pareto`'s defaults (ddarm.tuning.pareto.pareto_front): its budget, NSGA-II's population, the refining
 # searches and the points reported. On the paper's arm (computed torque, trajectory 1) the budget is about 20 s of
 # episodes in batches of a few hundred; its front then lies within about 0.5 % (mean, in I1 or I2) of the best

@@ -109,17 +109,23 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
         'start_omegas': list(tuning.start_omegas), 'start_indices': tuning.start_indices,
         'episodes': tuning.search.episodes, 'batches': tuning.search.batches,
         'wall_time_s': tuning.wall_time_s, 'episodes_per_s': tuning.episodes_per_s,
+        'batch_episodes_per_s': tuning.batch_episodes_per_s,
         'restarts': [{**dataclasses.asdict(restart), 'index': restart.index if np.isfinite(restart.index) else None}
                      for restart in tuning.search.restarts],
         'restarts_within_1_percent': tuning.search.restarts_within(0.01) if tuning.search.restarts else None,
         'evolution_generations': tuning.search.evolution_generations,
+        'converged': tuning.search.converged,
         'spec': best_spec.to_dict(), 'command': run.summary['command'],
         'joint_names': scored['joint_names'],
         'gains': {name: {'p': p, 'd': d} for name, p, d in zip(scored['joint_names'], tuning.search.kp.tolist(),
                                                                 tuning.search.kv.tolist())},
         'saturated_joints': scored.get('saturated_joints', []), 'warnings': list(tuning.warnings),
     }
+    if tuning.search.certificate is not None:
+        report['certificate'] = tuning.search.certificate.to_dict()
     provenance = f"{index} = {scored[index]!r} (scored from {scored['bag']})"
+    if tuning.search.converged is False:
+        provenance += f"; the search did not converge ({tuning.search.certificate.summary()})"
     if tuning.robust is not None:
         report['robust'] = tuning.robust.to_dict()
         objective, chosen = tuning.robust.aggregate, tuning.robust.chosen

@@ -108,9 +108,26 @@ def local_runs_text(report: dict) -> str:
     """The global search's confidence figure, from `ddarm tune`'s report: its local runs' bests and how many reached."""
     bests = ', '.join('diverged' if restart['index'] is None else f"{restart['index']:.6g}"
                       for restart in report['restarts'])
-    return (f"differential evolution ({report['evolution_generations']} generations), then {len(report['restarts'])} "
-            f"local runs, best {report['index']} = {bests}: {report['restarts_within_1_percent']} within 1 % of the "
-            'best')
+    return (f"{len(report['restarts'])} independent runs (differential evolution: {report['evolution_generations']} "
+            f"generations in all), best {report['index']} = {bests}: {report['restarts_within_1_percent']} within 1 % "
+            'of the best')
+
+
+def certificate_section(certificate: dict, index: str) -> list[str]:
+    """The Markdown of the global search's certificate: its verdict, every independent run's best, the basins."""
+    lines = ['', '## Certificate', '',
+             ('**Converged**: ' if certificate['converged'] else '**Not converged**: ')
+             + markdown_text(certificate['summary']) + '.', '',
+             f"Converged means: at least {certificate['required_runs']} independent runs within 0.5 % of the best, "
+             f"after at least {certificate['required_global_runs']} global runs (differential evolution, wide "
+             f"CMA-ES). {certificate['episodes']} of at most {certificate['budget']} episodes spent.", '',
+             _row(['run', f'best {index}', 'episodes']), _row(['---'] * 3)]
+    lines += [_row([markdown_text(run['run']), _index_cell(run['index']), str(run['episodes'])])
+              for run in certificate['runs']]
+    lines += ['', _row(['basin', f'best {index}', 'runs ending in it']), _row(['---'] * 3)]
+    lines += [_row([str(number + 1), _index_cell(basin['index']), str(basin['runs'])])
+              for number, basin in enumerate(certificate['basins'])]
+    return lines
 
 
 def write_tuning_report(run: RunFolder, report: dict) -> Path:
@@ -135,11 +152,14 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
              f"- search: {report['method']}, {report['episodes']} episodes in {report['wall_time_s']:.2f} s "
              f"({report['episodes_per_s']:.0f} episodes/s), best "
              + (f"{report['robust']['objective']} {report['index']} over the scenarios" if 'robust' in report
-                else report['index']) + f" = {report['search_index']:.9g}",
+                else report['index']) + f" = {report['search_index']:.9g}"
+             + (' (**not converged**: see the certificate)' if report.get('converged') is False else ''),
              *([f"- {local_runs_text(report)}"] if report['restarts'] else []),
              '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
     lines += [_row([markdown_text(name), f'{p:.6g}', f'{d:.6g}'])
               for name, p, d in zip(joints, report['kp'], report['kv'])]
+    if 'certificate' in report:
+        lines += certificate_section(report['certificate'], report['index'])
     if 'robust' in report:
         lines += robustness_section(report['robust'], report['index'], joints)
     lines += ['', '## Evidence', '', _row(['', *INDICES]), _row(['---'] * (len(INDICES) + 1)),

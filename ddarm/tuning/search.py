@@ -4,23 +4,29 @@ Every method searches x = (log k_p, log k_v), so every point is a valid positive
 step means the same relative change for a large and a small gain. Every evaluation of an
 iteration (a CMA-ES population; the moves of all Nelder-Mead starts) is one batch call.
 
-`global` (the default of `ddarm tune` and `ddarm reproduce`) is differential evolution (scipy's)
-over a box around the ω-rule gains, its population one batch per generation, then local CMA-ES
-runs (the `cma` package) from its best distinct members, side by side in one batch. Each local
-run's best index is kept, so a user can read how many of them reached the reported minimum
-(`restarts_within`): a confidence figure.
+`global` (the default of `ddarm tune` and `ddarm reproduce`) is a portfolio of independent runs, because each kind
+finds basins the others miss (on cases outside the paper's tables, differential evolution from three seeds landed in
+one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First
+Nelder-Mead from every ω-rule start, the law's own rule and the other law's, all side by side in one batch per step;
+then, by turns, differential evolution runs (scipy's), each polished by local CMA-ES runs from its best distinct
+points, and wide CMA-ES runs of doubling population (IPOP-CMA-ES), each from its own draws. After each run a
+`Certificate` says how sure the search is: every run's best, the basins they ended in, how many agree with the best.
+The search stops once the certificate holds, or when the budget, a ceiling, has no room for another run; a result
+that has not converged says so.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.optimize
 
+from ddarm.control.gains import SEARCH_START_OMEGAS
+from ddarm.control.laws import CONTROLLERS
 from ddarm.errors import DdarmError
 from ddarm.episodes.indices import INDICES
-from ddarm.episodes.spec import EpisodeSpec, arm_joints, gains_from_omega
+from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
 from ddarm.interrupts import check_stop
 from ddarm.tuning.methods import METHODS
 from ddarm.tuning.robust import AGGREGATES, scenario_batches
@@ -34,29 +40,56 @@ DIVERGED_PENALTY = 1e100
 # and scores 3 x DIVERGED_PENALTY, CMA-ES is kept inside by its own bound handling.
 GAIN_RANGE = (1e-3, 1e9)
 # Nelder-Mead stops a start once its simplex spans less than this in log gain (0.01 %) and
-# its values agree to this relative tolerance.
+# its values agree to this relative tolerance, or (scipy's default) once it has evaluated NM_EVALUATIONS points per
+# searched gain since its (re)start: a simplex among diverged gains follows the later divergences and may never
+# converge.
 NM_XTOL = 1e-4
 NM_FTOL = 1e-10
+NM_EVALUATIONS = 200
 # The global search's DE samples the box between the ω-rule gains at the smallest start ω divided by OMEGA_SPAN
 # and at the largest times OMEGA_SPAN, each gain then spread by a factor e^{±GAIN_SPREAD}: every gain an ω rule
-# could suggest, and off-rule ratios between k_p and k_v and between joints. Its local runs may leave the box.
+# could suggest, and off-rule ratios between k_p and k_v and between joints. Its polish may leave the box.
 OMEGA_SPAN = 2.0
 GAIN_SPREAD = 1.5
-# DE's population per dimension (scipy's popsize): 15 × 2n members, one batch call per generation. It stops
-# early once its members' values agree within DE_TOL relative (scipy's tol), the rest going to the local runs.
+# DE's population per dimension (scipy's popsize): 15 × 2n members, one batch call per generation. A run stops once
+# its members' values agree within DE_TOL relative (scipy's tol), after DE_GENERATIONS generations, or once it has
+# spent DE_SHARE of the budget left at its start (the rest is for its polish and the other runs).
 DE_POPSIZE = 15
 DE_TOL = 1e-3
-# The global search's local CMA-ES runs: how many, from the best points seen at least DISTINCT apart in some log
-# gain; their σ0, population and end (CMA_XTOL in log gain, or cma's own criteria); the share of the budget they
-# get.
-LOCAL_RUNS = 4
+DE_GENERATIONS = 300
+DE_SHARE = 0.6
+# Each DE run is polished by local CMA-ES runs from its FINALISTS best points at least DISTINCT apart in some log
+# gain (its last population often sits in one basin, while the points it passed on the way may mark deeper ones
+# close by), with σ0 LOCAL_SIGMA and population LOCAL_POPSIZE, side by side in one batch. Measured on the
+# development cases, CMA-ES polish reached deeper basins than Nelder-Mead's, in batches four times as large.
+FINALISTS = 4
 DISTINCT = 0.3
 LOCAL_SIGMA = 0.01
 LOCAL_POPSIZE = 16
+# Nelder-Mead from the ω-rule starts: simplices of edge START_STEP in log gain. A simplex that has converged is
+# restarted from its best vertex (the standard remedy for a simplex collapsed in a valley) while its last restart
+# lowered its best by more than RESTART_GAIN (relative), at most NM_RESTARTS times.
+START_STEP = 0.5
+# Nelder-Mead from the starts gets at most this share of the budget, so that a small budget leaves room for the
+# global runs.
+START_SHARE = 0.3
+RESTART_GAIN = 1e-6
+NM_RESTARTS = 8
+# The wide CMA-ES runs: σ0 in log gain (a factor e^2 in every gain, so they reach basins far off the ω rules), and
+# their end: CMA_XTOL in log gain, cma's own criteria, or WIDE_EVALUATIONS points per searched gain and per member
+# of cma's default population (a run of twice the population may take twice as many).
+WIDE_SIGMA = 2.0
 CMA_XTOL = 1e-6
-LOCAL_SHARE = 0.4
-# A run counts as having found the best basin when its best index is within this fraction of the best.
+WIDE_EVALUATIONS = 100
+# The certificate. A run reached the best when its best index is within SAME_BASIN of it; the search has converged
+# once AGREEING_RUNS runs are within AGREEMENT of the best, after at least MIN_GLOBAL_RUNS DE and wide CMA-ES runs,
+# and the runs since the best was first reached have spent as much as those before (Certificate.settled): on a rough
+# landscape many cheap runs agree on a shallow basin, and only more effort without a deeper one says it is the best. Runs whose bests
+# lie within AGREEMENT of each other are counted as one basin.
 SAME_BASIN = 0.01
+AGREEMENT = 0.005
+AGREEING_RUNS = 3
+MIN_GLOBAL_RUNS = 2
 
 class SearchError(DdarmError, ValueError):
     """A search specification that cannot be run."""
@@ -64,13 +97,90 @@ class SearchError(DdarmError, ValueError):
 
 @dataclass(frozen=True)
 class Restart:
-    """One local CMA-ES run of the global search: where it started, its population, what it found, why it stopped."""
+    """One independent run of the global search: where it started, its population, what it found, why it stopped.
 
-    start: str  # the point it started from: its rank among the points seen and its value
+    A Nelder-Mead run from an ω-rule start has popsize 1 (one simplex); a DE run's population is DE's, its
+    episodes and best include its polish.
+    """
+
+    start: str  # the run: its ω-rule start, or its DE seed
     popsize: int
     episodes: int
     index: float  # its best index, +inf if all its episodes diverged
-    stopped_by: tuple[str, ...]  # cma's stop criteria, or ('budget',)
+    stopped_by: tuple[str, ...]  # ('converged',), ('tol',) for a DE run whose population agreed, or ('budget',)
+
+
+@dataclass(frozen=True)
+class Certificate:
+    """How sure the global search is of its minimum: every independent run's best and whether enough agree.
+
+    `runs` are the runs' bests (+inf for a run that only diverged), `budget` the ceiling and `episodes` the spent,
+    `global_runs` the DE and wide CMA-ES runs among them.
+    """
+
+    runs: tuple[Restart, ...]
+    global_runs: int
+    budget: int
+    episodes: int
+
+    @property
+    def best(self) -> float:
+        return min((run.index for run in self.runs), default=np.inf)
+
+    def within(self, fraction: float) -> int:
+        """How many runs reached within `fraction` of the best."""
+        best = self.best
+        return sum(1 for run in self.runs if np.isfinite(best) and run.index <= (1.0 + fraction) * best)
+
+    @property
+    def settled(self) -> bool:
+        """Whether the runs since the first that reached the best (within AGREEMENT) spent at least as many episodes
+        as it and those before it: the search doubled its effort without finding a deeper basin."""
+        best = self.best
+        if not np.isfinite(best):
+            return False
+        first = next(number for number, run in enumerate(self.runs) if run.index <= (1.0 + AGREEMENT) * best)
+        return (sum(run.episodes for run in self.runs[first + 1:])
+                >= sum(run.episodes for run in self.runs[:first + 1]))
+
+    @property
+    def converged(self) -> bool:
+        return self.global_runs >= MIN_GLOBAL_RUNS and self.within(AGREEMENT) >= AGREEING_RUNS and self.settled
+
+    def basins(self) -> list[tuple[float, int]]:
+        """The runs' bests grouped, deepest first: (the group's best index, how many runs ended in it); a run
+        within AGREEMENT of a group's best joins it."""
+        groups: list[list] = []
+        for index in sorted(run.index for run in self.runs if np.isfinite(run.index)):
+            if groups and index <= (1.0 + AGREEMENT) * groups[-1][0]:
+                groups[-1][1] += 1
+            else:
+                groups.append([index, 1])
+        return [(index, count) for index, count in groups]
+
+    def summary(self) -> str:
+        """One line: converged, or not and what to try."""
+        runs = f'{self.within(SAME_BASIN)} of {len(self.runs)} runs within 1 %'
+        if self.converged:
+            return (f'converged: {runs}, {self.within(AGREEMENT)} within 0.5 % of the best; '
+                    f'{len(self.basins())} basins found')
+        unsettled = '' if self.settled else '; the runs since the best was first reached spent less than those before'
+        return (f'not converged: {runs} ({self.within(AGREEMENT)} within 0.5 %, {AGREEING_RUNS} needed, after '
+                f'{self.global_runs} of at least {MIN_GLOBAL_RUNS} global runs{unsettled}); '
+                f'try --budget {2 * max(self.budget, self.episodes)}')
+
+    def to_dict(self) -> dict:
+        """The JSON of `certificate`."""
+        def finite(value):
+            return float(value) if np.isfinite(value) else None
+        return {
+            'converged': self.converged, 'settled': self.settled, 'summary': self.summary(),
+            'runs': [{'run': run.start, 'index': finite(run.index), 'episodes': run.episodes} for run in self.runs],
+            'runs_within_1_percent': self.within(SAME_BASIN), 'runs_within_0_5_percent': self.within(AGREEMENT),
+            'required_runs': AGREEING_RUNS, 'global_runs': self.global_runs, 'required_global_runs': MIN_GLOBAL_RUNS,
+            'basins': [{'index': index, 'runs': count} for index, count in self.basins()],
+            'episodes': self.episodes, 'budget': self.budget,
+        }
 
 
 @dataclass(frozen=True)
@@ -79,7 +189,7 @@ class SearchResult:
 
     `index` is the best gains' value of the index named `index_name`, +inf if every episode diverged;
     history_index holds +inf for the diverged episodes. `batches` counts the batch calls. `restarts`
-    are the global search's local CMA-ES runs (empty for the other methods).
+    are the global search's independent runs (empty for the other methods), `certificate` its verdict on them.
     """
 
     method: str
@@ -95,13 +205,20 @@ class SearchResult:
     history_batch: np.ndarray
     restarts: tuple[Restart, ...] = ()
     evolution_generations: int = 0  # the global search's DE generations; 0: the budget left no room for DE
+    certificate: Certificate | None = None  # the global search's
+
+    @property
+    def converged(self) -> bool | None:
+        """Whether the global search's certificate holds; None for the other methods, which give none."""
+        return None if self.certificate is None else self.certificate.converged
 
     def best_so_far(self) -> np.ndarray:
         """The best index after each episode: the optimiser's progress."""
         return np.minimum.accumulate(self.history_index)
 
     def restarts_within(self, fraction: float = SAME_BASIN) -> int:
-        """How many local runs reached within `fraction` of the best index: a confidence figure (0 without them)."""
+        """How many independent runs reached within `fraction` of the best index: a confidence figure (0 without
+        them)."""
         return sum(1 for restart in self.restarts if restart.index <= (1.0 + fraction) * self.index)
 
 
@@ -176,15 +293,16 @@ class _Objective:
             self.progress(self.evaluations, self.best_value if self.best_value < DIVERGED_PENALTY else None)
         return values
 
-    def history_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every point simulated so far, in log gain (P, 2n), and its index (+inf if it diverged)."""
-        if not self.records:
+    def history_points(self, since: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Every point simulated from batch `since` on, in log gain (P, 2n), and its index (+inf if it diverged)."""
+        records = self.records[since:]
+        if not records:
             return np.empty((0, 0)), np.empty(0)
-        points = np.log(np.concatenate([np.concatenate([record[0], record[1]], axis=1) for record in self.records]))
-        return points, np.concatenate([record[2] for record in self.records])
+        points = np.log(np.concatenate([np.concatenate([record[0], record[1]], axis=1) for record in records]))
+        return points, np.concatenate([record[2] for record in records])
 
     def result(self, method: str, index_name: str, restarts: tuple[Restart, ...] = (),
-               evolution_generations: int = 0) -> SearchResult:
+               evolution_generations: int = 0, certificate: Certificate | None = None) -> SearchResult:
         dof = len(self.best_point) // 2
         gains = np.exp(self.best_point)
         kp_history = np.concatenate([record[0] for record in self.records])
@@ -195,13 +313,33 @@ class _Objective:
             history_kv=np.concatenate([record[1] for record in self.records]),
             history_index=np.concatenate([record[2] for record in self.records]),
             history_batch=np.concatenate([np.full(len(record[0]), record[3]) for record in self.records]),
-            restarts=restarts, evolution_generations=evolution_generations)
+            restarts=restarts, evolution_generations=evolution_generations, certificate=certificate)
 
 
 def omega_starts(template: EpisodeSpec, omegas) -> tuple[np.ndarray, np.ndarray]:
     """Start gains from section 2's ω rules for the template's controller at each ω: (kp, kv), each (S, n)."""
     pairs = [gains_from_omega(template, float(omega)) for omega in omegas]
     return np.array([kp for kp, _ in pairs]), np.array([kv for _, kv in pairs])
+
+
+def other_law_starts(template: EpisodeSpec) -> np.ndarray:
+    """The global search's further starts, in log gain: the other laws' ω rules at SEARCH_START_OMEGAS, applied to
+    this template's arm (the rule of PD + gravity scales each joint by its inertia, that of computed torque does
+    not; on some cases one law's optimum lies near the other's rule). A rule that gives gains outside GAIN_RANGE
+    is left out."""
+    points = []
+    for controller in CONTROLLERS:
+        if controller == template.controller:
+            continue
+        for omega in SEARCH_START_OMEGAS:
+            try:
+                kp, kv = gains_from_omega(replace(template, controller=controller), omega)
+            except EpisodeError:
+                continue
+            gains = np.concatenate([kp, kv])
+            if np.all((gains >= GAIN_RANGE[0]) & (gains <= GAIN_RANGE[1])):
+                points.append(np.log(gains))
+    return np.array(points).reshape(-1, 2 * len(arm_joints(template)[0]))
 
 
 def _start_points(start_kp, start_kv) -> np.ndarray:
@@ -230,12 +368,13 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
         start_kp, start_kv: start gains, shape (S, n) each (e.g. omega_starts).
         budget: the most episodes evaluated: points x scenarios, a Nelder-Mead point outside GAIN_RANGE
             (not simulated) counted as if it were; the search stops before a batch that would exceed it.
-        method: 'global' (differential evolution, then local CMA-ES runs; see the module and _global),
+        method: 'global' (Nelder-Mead from the starts, then differential evolutions until the certificate holds;
+            see the module and _global),
             'nelder-mead' (one simplex per start, advanced together) or 'cma' (CMA-ES from the
             best start).
         seed: the random draws of CMA-ES and of DE; Nelder-Mead is deterministic.
         step: the initial spread in log gain: Nelder-Mead's simplex edge, CMA-ES's σ0 (not used by
-            'global', whose DE spans its box and whose local runs start at LOCAL_SIGMA).
+            'global': its Nelder-Mead takes START_STEP, its CMA-ES runs LOCAL_SIGMA and WIDE_SIGMA).
         popsize: CMA-ES's population per batch (default: cma's, 4 + 3 ln 2n); for 'global', DE's
             population per dimension (default DE_POPSIZE).
         progress: called as progress(episodes so far, best index so far or None) after each batch.
@@ -254,8 +393,9 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
     objective = _Objective(template, index, int(budget), progress, None if scenarios is None else tuple(scenarios),
                            aggregate)
     if method == 'global':
-        restarts, generations = _global(objective, starts, seed, DE_POPSIZE if popsize is None else int(popsize))
-        return objective.result(method, index, restarts, generations)
+        restarts, generations, certificate = _global(objective, starts, other_law_starts(template), seed,
+                                                     DE_POPSIZE if popsize is None else int(popsize))
+        return objective.result(method, index, restarts, generations, certificate)
     if method == 'nelder-mead':
         _nelder_mead(objective, starts, step)
     else:
@@ -295,14 +435,23 @@ def check_search(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
                                   f'got {list(arm_joints(scenario)[0])}')
     count = 1 if scenarios is None else len(scenarios)
     starts = _start_points(start_kp, start_kv)
-    minimum = len(starts) * (starts.shape[1] + 1) if method == 'nelder-mead' else len(starts)
-    if method == 'global':  # the starts and one local population
-        minimum = len(starts) + LOCAL_POPSIZE
+    minimum = least_budget(method, len(starts), starts.shape[1])
     if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < minimum * count:
         raise SearchError(f'budget must be a whole number of at least {minimum * count} episodes '
                           f'(the starts{" and their simplices" if method == "nelder-mead" else ""}'
-                          f'{" and one local population" if method == "global" else ""}'
+                          f'{" and the other law’s ω-rule starts" if method == "global" else ""}'
                           f'{f", each on {count} scenarios" if count > 1 else ""}), got {budget!r}')
+    return starts
+
+
+def least_budget(method: str, starts: int, dimension: int) -> int:
+    """The fewest episodes (per scenario) a search of `method` from `starts` starts over `dimension` log gains runs:
+    the starts, and for Nelder-Mead their simplices; the global search adds the other laws' ω-rule starts (and does
+    what the rest allows, its certificate saying whether that was enough)."""
+    if method == 'nelder-mead':
+        return starts * (dimension + 1)
+    if method == 'global':
+        return starts + len(SEARCH_START_OMEGAS) * (len(CONTROLLERS) - 1)
     return starts
 
 
@@ -333,89 +482,169 @@ def cma_options(rng, popsize: int | None = None, tolx: float | None = None) -> d
     return options
 
 
-class _Run:
-    """One local CMA-ES run of the global search under way: its strategy, where it started, what it found so far."""
+class _Share:
+    """The objective with at most `points` more points evaluated through it: one phase's share of the budget."""
 
-    def __init__(self, origin: str, start: np.ndarray, popsize: int, rng) -> None:
-        # Imported here, not at the top: cma (with scipy.stats) takes 1.5 to 2 s that most commands need not wait.
-        import cma
+    def __init__(self, objective: _Objective, points: int) -> None:
+        self.objective, self.scenarios = objective, objective.scenarios
+        self.end = objective.budget - objective.remaining + points
 
-        self.origin = origin
-        self.strategy = cma.CMAEvolutionStrategy(start, LOCAL_SIGMA, cma_options(rng, popsize, CMA_XTOL))
-        self.episodes, self.index = 0, np.inf
+    @property
+    def remaining(self) -> int:
+        return min(self.objective.remaining, self.end - (self.objective.budget - self.objective.remaining))
 
-    def tell(self, population, values: np.ndarray, episodes: int) -> None:
-        self.strategy.tell(population, values.tolist())
-        self.episodes += episodes
-        best = float(values.min())
-        self.index = min(self.index, best if best < DIVERGED_PENALTY else np.inf)
-
-    def restart(self, stopped_by: tuple[str, ...]) -> Restart:
-        return Restart(self.origin, self.strategy.popsize, self.episodes, self.index, stopped_by)
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        return self.objective(points)
 
 
-def _global(objective: _Objective, starts: np.ndarray, seed: int, popsize: int) -> tuple[tuple[Restart, ...], int]:
-    """Differential evolution over `search_box`, then local CMA-ES runs from its LOCAL_RUNS best distinct members.
+def _finite(value: float) -> float:
+    """An objective value as a run's index: +inf for a divergence penalty."""
+    return float(value) if value < DIVERGED_PENALTY else np.inf
 
-    DE (scipy's: best1bin, Latin hypercube initialisation, the best start among its members) gets 1 - LOCAL_SHARE of
-    the budget; its whole population (popsize × 2n members) is one batch call per generation. The indices
-    sum |e| and |P - P^nom| over the samples, so they have a kink wherever a sample's error or torque
-    deviation changes sign: their landscape is rough, with local minima close together, and a population
-    method that keeps sampling the whole box finds the deep ones where restarted CMA-ES runs settle in the
-    first they meet. The local runs (σ0 = LOCAL_SIGMA) share the rest of the budget, their populations one
-    batch call, until cma stops them or the budget ends; each is a `Restart` of the result.
-    """
-    rng = np.random.default_rng(seed)
-    values = objective(starts)
-    low, high = search_box(starts)
-    dimension = starts.shape[1]
-    members = max(5, popsize * dimension)  # scipy's own population size
-    generations = int((1.0 - LOCAL_SHARE) * objective.remaining) // members - 1
-    evolution_generations = 0
-    if generations >= 1:
-        evolution = scipy.optimize.differential_evolution(
-            lambda population: objective(population.T), list(zip(low, high)), vectorized=True,
-            updating='deferred', popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False,
-            x0=starts[int(np.argmin(values))], rng=rng)
-        evolution_generations = int(evolution.nit)
-    # The local runs start from the best points seen, DISTINCT apart: DE's last population often sits in one
-    # basin, where the points it passed on the way may mark deeper ones close by.
-    points, energies = objective.history_points()
+
+def _distinct_best(points: np.ndarray, values: np.ndarray, count: int) -> list[int]:
+    """The positions of the `count` best finite values whose points lie at least DISTINCT apart in some log gain."""
     chosen: list[int] = []
-    for member in np.argsort(energies, kind='stable'):
-        if not np.isfinite(energies[member]):
+    for member in np.argsort(values, kind='stable'):
+        if not np.isfinite(values[member]) or len(chosen) == count:
             break
         if all(np.max(np.abs(points[member] - points[other])) > DISTINCT for other in chosen):
             chosen.append(int(member))
-        if len(chosen) == LOCAL_RUNS:
-            break
-    origins = [f'point {rank + 1} seen ({energies[member]:.6g})' for rank, member in enumerate(chosen)]
-    # As many runs as the budget has room for a population of each: a run that never ran is no confidence figure.
-    room = max(1, objective.remaining // LOCAL_POPSIZE)
-    origins, chosen = origins[:room], chosen[:room]
-    runs = [_Run(origin, points[member], LOCAL_POPSIZE, rng) for origin, member in zip(origins, chosen)]
-    finished = []
+    return chosen
+
+
+def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
+               x0: np.ndarray | None = None, since: int | None = None) -> tuple[Restart, int] | None:
+    """One DE run over `box` from `rng`'s draws (with `x0` among its first members, if given) on at most DE_SHARE of
+    the budget left, polished by local CMA-ES runs from the FINALISTS best distinct points evaluated since batch
+    `since` (default: its own); None if the budget has no room for two of its generations.
+
+    DE (scipy's: best1bin, Latin hypercube initialisation) evaluates its whole population (popsize × 2n members)
+    as one batch call per generation. The indices sum |e| and |P - P^nom| over the samples, so they have a kink
+    wherever a sample's error or torque deviation changes sign: their landscape is rough, with local minima close
+    together, and a population that samples the whole box finds deep ones that a local search from the ω rules
+    misses.
+    """
+    low, high = box
+    members = max(5, popsize * len(low))  # scipy's own population size
+    generations = min(DE_GENERATIONS, int(DE_SHARE * objective.remaining) // members - 1)
+    if generations < 1:
+        return None
+    spent, first_record = objective.evaluations, len(objective.records)
+    evolution = scipy.optimize.differential_evolution(
+        lambda population: objective(population.T), list(zip(low, high)), vectorized=True, updating='deferred',
+        popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
+    points, energies = objective.history_points(first_record if since is None else since)
+    best = min(_finite(evolution.fun), _local_cma(objective, points[_distinct_best(points, energies, FINALISTS)], rng))
+    stopped_by = ('tol',) if evolution.success else ('generations',)
+    return Restart(name, members, objective.evaluations - spent, best, stopped_by), int(evolution.nit)
+
+
+def _local_cma(objective: _Objective, centres: np.ndarray, rng) -> float:
+    """CMA-ES runs (σ0 = LOCAL_SIGMA, population LOCAL_POPSIZE) from each centre, their populations side by side in
+    one batch call, until cma stops each or the budget ends them, the last first; their best index."""
+    import cma  # see _cma
+
+    runs = [cma.CMAEvolutionStrategy(centre, LOCAL_SIGMA, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL))
+            for centre in centres[:max(1, objective.remaining // LOCAL_POPSIZE)]]
+    best = np.inf
     while runs:
-        while runs and sum(run.strategy.popsize for run in runs) > objective.remaining:
-            run = runs.pop()
-            finished.append(run.restart(('budget',)))
+        while runs and LOCAL_POPSIZE * len(runs) > objective.remaining:
+            runs.pop()
         if not runs:
             break
-        populations = [run.strategy.ask() for run in runs]
+        populations = [run.ask() for run in runs]
         values = objective(np.concatenate([np.array(population) for population in populations]))
-        ends = np.cumsum([len(population) for population in populations])
-        for run, population, run_values in zip(list(runs), populations, np.split(values, ends[:-1])):
-            run.tell(population, run_values, len(population) * len(objective.scenarios))
-            if run.strategy.stop():
-                finished.append(run.restart(tuple(run.strategy.stop())))
-                runs.remove(run)
-    ran = [restart for restart in finished if restart.episodes > 0]
-    return tuple(sorted(ran, key=lambda restart: origins.index(restart.start))), evolution_generations
+        best = min(best, _finite(float(values.min())))
+        for run, population, run_values in zip(runs, populations, np.split(values, len(runs))):
+            run.tell(population, run_values.tolist())
+        runs = [run for run in runs if not run.stop()]
+    return best
+
+
+def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str) -> Restart | None:
+    """One CMA-ES run from `centre` with σ0 = WIDE_SIGMA and population `popsize`, until cma stops it or the budget
+    has no room for its next population; None if it has no room for two."""
+    import cma  # see _cma
+
+    if 2 * popsize > objective.remaining:
+        return None
+    spent, dimension = objective.evaluations, len(centre)
+    strategy = cma.CMAEvolutionStrategy(centre, WIDE_SIGMA, cma_options(rng, popsize, CMA_XTOL))
+    best = np.inf
+    limit = objective.remaining - WIDE_EVALUATIONS * dimension * popsize
+    while not strategy.stop() and popsize <= objective.remaining - max(0, limit):
+        population = strategy.ask()
+        values = objective(np.array(population))
+        strategy.tell(population, values.tolist())
+        best = min(best, _finite(float(values.min())))
+    stopped_by = tuple(strategy.stop()) or ('budget',)
+    return Restart(name, popsize, objective.evaluations - spent, best, stopped_by)
+
+
+def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndarray, seed: int,
+            popsize: int) -> tuple[tuple[Restart, ...], int, Certificate]:
+    """A differential evolution from the best start, Nelder-Mead from every start, then wide CMA-ES runs and
+    further differential evolutions by turns, until the certificate holds or the budget has no room for the next
+    run.
+
+    The first DE run (over the box of the law's own starts, the best of them among its members, its draws seeded
+    by `seed`, on DE_SHARE of the budget) is the strongest single run measured on the paper's cases, so a small
+    budget goes to it first; the other law's starts join from the Nelder-Mead on. Each start's
+    Nelder-Mead (restarted while it improves) is one independent run; so is each DE run with its polish and each
+    wide CMA-ES run, the later ones each from their own draws (seeded by `seed` and their number). The CMA-ES runs
+    start from the best start with WIDE_SIGMA and double their population run after run (IPOP-CMA-ES). Returns
+    the runs, DE's generations in all, and the certificate.
+    """
+    budget = objective.budget * len(objective.scenarios)
+    starts = np.vstack([own_starts, other_starts])
+    values = objective(starts)
+    box, centre = search_box(own_starts), starts[int(np.argmin(values))]
+    runs, generations = [], 0  # only DE runs until Nelder-Mead's are added below
+    evolution = _evolution(objective, box, popsize, np.random.default_rng(seed), 'differential evolution 1, from the '
+                           'best start', x0=own_starts[int(np.argmin(values[:len(own_starts)]))], since=0)
+    if evolution is not None:
+        runs.append(evolution[0])
+        generations += evolution[1]
+    phase = _Share(objective, int(START_SHARE * objective.remaining))
+    # The best starts whose simplices the phase has room for; the others keep their start's index.
+    taken = np.sort(np.argsort(values, kind='stable')[:phase.remaining // (starts.shape[1] + 1)])
+    bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
+    if len(taken):
+        spent = objective.evaluations
+        found, _, converged[taken] = _nelder_mead(phase, starts[taken], START_STEP, NM_RESTARTS)
+        bests[taken] = np.minimum(values[taken], found)
+        episodes[taken] = (objective.evaluations - spent) // len(taken)
+    runs += [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
+                     _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
+             for number in range(len(starts))]
+    cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
+    evolutions, wide = len(runs) - len(starts), 0  # the DE runs and wide CMA-ES runs done
+    while True:
+        certificate = Certificate(tuple(runs), evolutions + wide, budget, objective.evaluations)
+        if certificate.converged:
+            break
+        draws = np.random.default_rng([seed, evolutions + wide])
+        if wide >= evolutions:
+            evolution = _evolution(objective, box, popsize, draws, f'differential evolution {evolutions + 1}')
+            if evolution is None:
+                break
+            run, ran = evolution
+            generations += ran
+            evolutions += 1
+        else:
+            run = _wide_cma(objective, centre, cma_popsize * 2 ** wide, draws, f'wide CMA-ES {wide + 1}')
+            if run is None:
+                break
+            wide += 1
+        runs.append(run)
+    return tuple(runs), generations, certificate
 
 
 def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, popsize: int | None) -> None:
     """CMA-ES (the `cma` package) from the best start, one batch call per population."""
-    import cma  # see _Run
+    # Imported here, not at the top: cma (with scipy.stats) takes 1.5 to 2 s that most commands need not wait.
+    import cma
 
     values = objective(starts)
     rng = np.random.default_rng(seed)
@@ -425,17 +654,29 @@ def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, pops
         strategy.tell(population, objective(np.array(population)).tolist())
 
 
-def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float) -> None:
-    """Nelder-Mead (standard coefficients 1, 2, 1/2, 1/2) from every start at once.
+def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float,
+                 restarts: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nelder-Mead (standard coefficients 1, 2, 1/2, 1/2) from every start at once; a simplex that has converged
+    is restarted from its best vertex, at most `restarts` times, while its last (re)start lowered its best by more
+    than RESTART_GAIN.
+
+    Returns each start's best value and point (its simplex's best vertex) and whether it ended converged (False:
+    the budget ended it first).
 
     scipy's Nelder-Mead asks for one point at a time, so it cannot batch the starts; here
-    each phase of an iteration (the reflections; the expansions and contractions; the shrinks)
+    each phase of an iteration (the reflections; the expansions and contractions; the shrinks and restarts)
     is one batch call over all starts that need it. Evaluating all four candidates at once
     would make an iteration one call but would about double the episodes.
     """
     count, dimension = starts.shape
-    simplex = starts[:, None, :] + step * np.concatenate([np.zeros((1, dimension)), np.eye(dimension)])[None]
+    edges = step * np.eye(dimension)
+    converged = np.zeros(count, dtype=bool)
+    if count * (dimension + 1) > objective.remaining:
+        return np.full(count, np.inf), starts.copy(), converged
+    simplex = starts[:, None, :] + np.concatenate([np.zeros((1, dimension)), edges])[None]
     values = objective(simplex.reshape(-1, dimension)).reshape(count, dimension + 1)
+    restarted_at, restarts_left = values[:, 0].copy(), np.full(count, restarts)
+    evaluated = np.full(count, dimension + 1)  # since each start's (re)start
     active = np.ones(count, dtype=bool)
     while True:
         order = np.argsort(values, axis=1, kind='stable')
@@ -443,10 +684,22 @@ def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float) -> None
         values = np.take_along_axis(values, order, axis=1)
         spread = np.max(np.abs(simplex[:, 1:] - simplex[:, :1]), axis=(1, 2))
         agreement = np.max(np.abs(values[:, 1:] - values[:, :1]), axis=1) <= NM_FTOL * np.abs(values[:, 0])
-        active &= ~((spread <= NM_XTOL) & agreement)
+        settled = active & (spread <= NM_XTOL) & agreement
+        converged |= settled
+        restarting = np.flatnonzero(settled & (restarts_left > 0)
+                                    & (values[:, 0] < (1.0 - RESTART_GAIN) * restarted_at))
+        active &= ~(settled | (evaluated >= NM_EVALUATIONS * dimension))
+        if len(restarting) and len(restarting) * dimension <= objective.remaining:
+            simplex[restarting, 1:] = simplex[restarting, :1] + edges[None]
+            values[restarting, 1:] = objective(simplex[restarting, 1:].reshape(-1, dimension)).reshape(
+                len(restarting), dimension)
+            restarted_at[restarting], restarts_left[restarting] = values[restarting, 0], restarts_left[restarting] - 1
+            evaluated[restarting] = dimension
+            active[restarting], converged[restarting] = True, False
+            continue
         moving = np.flatnonzero(active)
         if len(moving) == 0 or len(moving) > objective.remaining:
-            return
+            break
         best, worst = values[moving, 0], values[moving, -1]
         centroid = simplex[moving, :-1].mean(axis=1)
         reflected = 2.0 * centroid - simplex[moving, -1]
@@ -460,10 +713,11 @@ def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float) -> None
                                   centroid + 0.5 * (simplex[moving, -1] - centroid)))
         tried = ~accept
         if tried.sum() > objective.remaining:
-            return
+            break
         trial_value = np.full(len(moving), np.inf)
         if tried.any():
             trial_value[tried] = objective(trial[tried])
+        evaluated[moving] += 1 + tried
         new_vertex, new_value = reflected.copy(), reflected_value.copy()
         take_trial = ((expand & (trial_value < reflected_value)) | (outside & (trial_value <= reflected_value))
                       | (inside & (trial_value < worst)))
@@ -474,7 +728,10 @@ def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float) -> None
         shrinking = moving[shrink]
         if len(shrinking):
             if len(shrinking) * dimension > objective.remaining:
-                return
+                break
             shrunk = simplex[shrinking, :1] + 0.5 * (simplex[shrinking, 1:] - simplex[shrinking, :1])
             simplex[shrinking, 1:] = shrunk
             values[shrinking, 1:] = objective(shrunk.reshape(-1, dimension)).reshape(len(shrinking), dimension)
+            evaluated[shrinking] += dimension
+    best = np.argmin(values, axis=1)
+    return values[np.arange(count), best], simplex[np.arange(count), best], converged

@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ddarm.control.gains import SEARCH_START_OMEGAS
+from ddarm.episodes.bench import batch_rate
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.tuning.robust import ScenarioScores, scenario_record, scenario_scores
@@ -54,6 +55,7 @@ class Tuning:
     best: dict  # the indices of the best gains, re-run as one episode
     warnings: tuple[str, ...] = ()  # the motion against the URDF's limits
     robust: Robustness | None = None
+    batch_episodes_per_s: float | None = None  # `ddarm bench`'s batch rate on the same episode, if measured
 
     @property
     def episodes_per_s(self) -> float:
@@ -62,14 +64,16 @@ class Tuning:
 
 def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEARCH_START_OMEGAS,
          seed: int = 0, progress=None, scenarios: tuple[EpisodeSpec, ...] | None = None,
-         aggregate: str = 'worst') -> Tuning:
+         aggregate: str = 'worst', measure_batch_rate: bool = False) -> Tuning:
     """Minimise `index` (I1, I2 or I) from the ω-rule gains at each ω of `omegas`; the best gains re-run alone.
 
     With `scenarios` (ddarm.tuning.robust.scenario_grid), the `aggregate` ('worst' or 'mean') of the index over
     them is minimised, within `budget` episodes, after the same search (method, budget, seed) on the template
     alone: its optimum is one more start of the robust search, so the robust gains' aggregate is never worse
     than the nominal optimum's. `progress(episodes so far, best index so far or None)` is called after each
-    batch of the search that `search` holds (the robust one, with scenarios).
+    batch of the search that `search` holds (the robust one, with scenarios). `measure_batch_rate` also times
+    `ddarm bench`'s batch (1000 episodes around the best gains) after the search, for its episodes/s to be read
+    against.
     """
     start_kp, start_kv = omega_starts(template, omegas)
     search = dict(index=index, budget=budget, method=method)
@@ -97,7 +101,9 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
         warnings += (f'the budget ({budget} episodes{f" over {len(scenarios)} scenarios" if scenarios else ""}) left '
                      'no room for differential evolution: only local runs from the starts searched, so better '
                      'basins may have been missed; raise --budget',)
-    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust)
+    rate = batch_rate(with_gains(template, result.kp, result.kv)) if measure_batch_rate else None
+    return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust,
+                  rate)
 
 
 def _timed_search(template: EpisodeSpec, **arguments) -> tuple[SearchResult, float]:
