@@ -49,7 +49,10 @@ RATE_RANGE = (1.0, 10_000.0)  # Hz
 WATCHDOG_PERIOD = 0.05  # wall s between checks of start-up and, in lockstep, of the command timeout
 # Lockstep, before the first command: sample 0 is published again one period later this often (wall s). A
 # controller on /clock ticks only when the clock moves, and its first tick may have come before its first state.
-START_RETRY = 0.1
+# Not sooner: a retry moves the clock, so a command already on its way for the earlier sample 0 would be taken
+# for sample 0 and the controller's next for sample 1 (seen once in a loaded test run at 0.1 s: sample 1's command
+# went missing).
+START_RETRY = 0.5
 # Lockstep: the robot's time of the first sample, in periods. Not 0: a node on use_sim_time reads 0 as "no time".
 FIRST_SAMPLE = 1
 LOG_EVERY = 1.0  # s: a recurring fault (a refused command) is logged at most this often; each is counted
