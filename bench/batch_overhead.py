@@ -68,7 +68,8 @@ def main() -> None:
         before = per_call(lambda: simulate_batch(template, kp, kv, plan=plan), options.calls, timer)
         after = per_call(lambda: runner(kp, kv), options.calls, timer)
         print(f"{name:<12} {before['overhead_ms']:>8.3f} ms of {before['wall_ms']:>6.3f} ms "
-              f"{after['overhead_ms']:>6.3f} of {after['wall_ms']:>6.3f} {before['overhead_ms'] / after['overhead_ms']:>14.1f}x")
+              f"{after['overhead_ms']:>6.3f} of {after['wall_ms']:>6.3f} "
+              f"{before['overhead_ms'] / after['overhead_ms']:>14.1f}x")
 
 
 if __name__ == '__main__':

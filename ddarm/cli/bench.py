@@ -7,8 +7,8 @@ from pathlib import Path
 
 from ddarm.cli.arguments import absolute_path, seed, whole_number
 from ddarm.cli.output import print_json
-from ddarm.episodes.bench import (BATCH_SIZES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES, batch_rates,
-                                  reference_case, run_bench)
+from ddarm.episodes.bench import (BATCH_SIZES, BENCH_EPISODES, GAIN_SPREAD, MANY_JOINT_ARM, SCALAR_EPISODES,
+                                  batch_rates, reference_case, run_bench)
 from ddarm.physics.arm import config_file
 
 
@@ -76,8 +76,8 @@ def command_bench(args: argparse.Namespace) -> int:
 def add_bench_parser(commands) -> None:
     """Register `ddarm bench` on the `ddarm` command's subparsers."""
     bench = commands.add_parser('bench', help='episodes per second of the batch engine: one batch call against one call per episode')
-    bench.add_argument('--episodes', type=_count('MAX_BATCH'), default=1000, metavar='N',
-                       help='episodes in the batch (1000)')
+    bench.add_argument('--episodes', type=_count('MAX_BATCH'), default=BENCH_EPISODES, metavar='N',
+                       help=f'episodes in the batch ({BENCH_EPISODES})')
     bench.add_argument('--scalar-episodes', type=_count('MAX_BATCH'), default=SCALAR_EPISODES, metavar='M',
                        help=f'of them, how many also run one per call ({SCALAR_EPISODES})')
     bench.add_argument('--seed', type=seed, default=0, help='seed of the gain perturbation (0)')

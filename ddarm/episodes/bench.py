@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ddarm.episodes.engine import BatchRunner, run_episode, simulate_batch
+from ddarm.episodes.engine import run_episode, simulate_batch
 from ddarm.episodes.spec import EpisodeSpec, check_episode, gains_from_omega
 
 # Issue 5's reference case: computed torque with the ω = 15 rule, trajectory 1, T = 1 s, Δ = 0.01 s, delay 1.
@@ -17,6 +17,8 @@ REFERENCE = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,
                         duration=1.0, period=0.01, delay=1)
 # Each episode's gains are the reference's times exp(σ N(0, 1)), per gain.
 GAIN_SPREAD = 0.2
+# `ddarm bench`'s batch by default: the rate a search's episodes/s is read against.
+BENCH_EPISODES = 1000
 # One episode per call pays the per-call costs B times over: a sample of them is enough for its rate.
 SCALAR_EPISODES = 50
 # A CMA-ES population, a DE generation, a large batch.
@@ -85,16 +87,6 @@ def run_bench(episodes: int, seed: int = 0, scalar_episodes: int = SCALAR_EPISOD
         'warmup_s': warmup, 'peak_rss_mib': peak_rss_mib(),
     }
 
-
-
-def batch_rate(template: EpisodeSpec, episodes: int = 1000, seed: int = 0) -> float:
-    """`ddarm bench`'s batch rate on `template`'s episode, in episodes/s: `episodes` perturbed around its gains in one
-    call on all cores, the plan made beforehand (what a search's large batches can reach)."""
-    kp, kv = perturbed_gains(template, episodes, seed)
-    runner = BatchRunner(template)
-    started = time.perf_counter()
-    runner(kp, kv)
-    return episodes / (time.perf_counter() - started)
 
 
 def batch_rates(template: EpisodeSpec, sizes=BATCH_SIZES, seed: int = 0, threads: int | None = None,

@@ -6,10 +6,11 @@ iteration (a CMA-ES population; the moves of all Nelder-Mead starts) is one batc
 
 `global` (the default of `ddarm tune` and `ddarm reproduce`) is a portfolio of independent runs, because each kind
 finds basins the others miss (on cases outside the paper's tables, differential evolution from three seeds landed in
-one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First
-Nelder-Mead from every ω-rule start, the law's own rule and the other law's, all side by side in one batch per step;
-then, by turns, differential evolution runs (scipy's), each polished by local CMA-ES runs from its best distinct
-points, and wide CMA-ES runs of doubling population (IPOP-CMA-ES), each from its own draws. After each run a
+one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First a
+differential evolution run (scipy's) from the best start, polished by local CMA-ES runs from its best distinct
+points; then Nelder-Mead from every ω-rule start, the law's own rule and the other law's, all side by side in one
+batch per step; then, by turns, wide CMA-ES runs of doubling population (IPOP-CMA-ES) and further differential
+evolutions, each from its own draws. After each run a
 `Certificate` says how sure the search is: every run's best, the basins they ended in, how many agree with the best.
 The search stops once the certificate holds, or when the budget, a ceiling, has no room for another run; a result
 that has not converged says so.
@@ -66,12 +67,11 @@ FINALISTS = 4
 DISTINCT = 0.3
 LOCAL_SIGMA = 0.01
 LOCAL_POPSIZE = 16
-# Nelder-Mead from the ω-rule starts: simplices of edge START_STEP in log gain. A simplex that has converged is
-# restarted from its best vertex (the standard remedy for a simplex collapsed in a valley) while its last restart
-# lowered its best by more than RESTART_GAIN (relative), at most NM_RESTARTS times.
+# Nelder-Mead from the ω-rule starts: simplices of edge START_STEP in log gain, on at most START_SHARE of the budget
+# left (so that a small budget leaves room for the global runs). A simplex that has converged is restarted from its
+# best vertex (the standard remedy for a simplex collapsed in a valley) while its last restart lowered its best by
+# more than RESTART_GAIN (relative), at most NM_RESTARTS times.
 START_STEP = 0.5
-# Nelder-Mead from the starts gets at most this share of the budget, so that a small budget leaves room for the
-# global runs.
 START_SHARE = 0.3
 RESTART_GAIN = 1e-6
 NM_RESTARTS = 8
@@ -85,8 +85,8 @@ WIDE_EVALUATIONS = 100
 # once AGREEING_RUNS runs, and at least AGREEING_SHARE of all runs, are within AGREEMENT of the best, after at least
 # MIN_GLOBAL_RUNS DE and wide CMA-ES runs, and the runs since the best was first reached have spent as much as those
 # before (Certificate.settled). On a rough landscape three of fifteen runs agreed on a basin 4 % above one that
-# other runs found: a best that few runs reach has a small basin, and deeper small ones may remain unseen. Runs whose bests
-# lie within AGREEMENT of each other are counted as one basin.
+# other runs found: a best that few runs reach has a small basin, and deeper small ones may remain unseen. Runs
+# whose bests lie within AGREEMENT of each other are counted as one basin.
 SAME_BASIN = 0.01
 AGREEMENT = 0.005
 AGREEING_RUNS = 3
@@ -105,11 +105,13 @@ class Restart:
     episodes and best include its polish.
     """
 
-    start: str  # the run: its ω-rule start, or its DE seed
+    start: str  # the run: its ω-rule start, or its DE or CMA-ES run's number
     popsize: int
     episodes: int
     index: float  # its best index, +inf if all its episodes diverged
-    stopped_by: tuple[str, ...]  # ('converged',), ('tol',) for a DE run whose population agreed, or ('budget',)
+    # Nelder-Mead's ('converged',) or ('budget',); DE's ('tol',) when its population agreed, else ('generations',);
+    # cma's own stop criteria, or ('budget',).
+    stopped_by: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -185,7 +187,8 @@ class Certificate:
             'converged': self.converged, 'settled': self.settled, 'summary': self.summary(),
             'runs': [{'run': run.start, 'index': finite(run.index), 'episodes': run.episodes} for run in self.runs],
             'runs_within_1_percent': self.within(SAME_BASIN), 'runs_within_0_5_percent': self.within(AGREEMENT),
-            'required_runs': self.required_runs, 'global_runs': self.global_runs, 'required_global_runs': MIN_GLOBAL_RUNS,
+            'required_runs': self.required_runs, 'global_runs': self.global_runs,
+            'required_global_runs': MIN_GLOBAL_RUNS,
             'basins': [{'index': index, 'runs': count} for index, count in self.basins()],
             'episodes': self.episodes, 'budget': self.budget,
         }
@@ -376,8 +379,8 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
         start_kp, start_kv: start gains, shape (S, n) each (e.g. omega_starts).
         budget: the most episodes evaluated: points x scenarios, a Nelder-Mead point outside GAIN_RANGE
             (not simulated) counted as if it were; the search stops before a batch that would exceed it.
-        method: 'global' (Nelder-Mead from the starts, then differential evolutions until the certificate holds;
-            see the module and _global),
+        method: 'global' (independent runs of differential evolution, Nelder-Mead and CMA-ES until its
+            certificate holds; see the module and _global),
             'nelder-mead' (one simplex per start, advanced together) or 'cma' (CMA-ES from the
             best start).
         seed: the random draws of CMA-ES and of DE; Nelder-Mead is deterministic.
@@ -491,15 +494,16 @@ def cma_options(rng, popsize: int | None = None, tolx: float | None = None) -> d
 
 
 class _Share:
-    """The objective with at most `points` more points evaluated through it: one phase's share of the budget."""
+    """The objective with at most `points` more points evaluated through it: one phase's or run's share of the
+    budget."""
 
     def __init__(self, objective: _Objective, points: int) -> None:
         self.objective, self.scenarios = objective, objective.scenarios
-        self.end = objective.budget - objective.remaining + points
+        self.reserve = max(0, objective.remaining - points)  # what the rest of the search keeps
 
     @property
     def remaining(self) -> int:
-        return min(self.objective.remaining, self.end - (self.objective.budget - self.objective.remaining))
+        return self.objective.remaining - self.reserve
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         return self.objective(points)
@@ -577,11 +581,10 @@ def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name
 
     if 2 * popsize > objective.remaining:
         return None
-    spent, dimension = objective.evaluations, len(centre)
+    spent, share = objective.evaluations, _Share(objective, WIDE_EVALUATIONS * len(centre) * popsize)
     strategy = cma.CMAEvolutionStrategy(centre, WIDE_SIGMA, cma_options(rng, popsize, CMA_XTOL))
     best = np.inf
-    limit = objective.remaining - WIDE_EVALUATIONS * dimension * popsize
-    while not strategy.stop() and popsize <= objective.remaining - max(0, limit):
+    while not strategy.stop() and popsize <= share.remaining:
         population = strategy.ask()
         values = objective(np.array(population))
         strategy.tell(population, values.tolist())
@@ -610,8 +613,8 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
     centre = starts[int(np.argmin(values))]
     runs, generations = [], 0  # only DE runs until Nelder-Mead's are added below
     evolution = _evolution(objective, search_box(own_starts), popsize, np.random.default_rng(seed),
-                           'differential evolution 1, from the '
-                           'best start', x0=own_starts[int(np.argmin(values[:len(own_starts)]))], since=0)
+                           'differential evolution 1, from the best start',
+                           x0=own_starts[int(np.argmin(values[:len(own_starts)]))], since=0)
     if evolution is not None:
         runs.append(evolution[0])
         generations += evolution[1]
@@ -621,14 +624,14 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
     bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
     if len(taken):
         spent = objective.evaluations
-        found, _, converged[taken] = _nelder_mead(phase, starts[taken], START_STEP, NM_RESTARTS)
+        found, converged[taken] = _nelder_mead(phase, starts[taken], START_STEP, NM_RESTARTS)
         bests[taken] = np.minimum(values[taken], found)
         episodes[taken] = (objective.evaluations - spent) // len(taken)
     runs += [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
                      _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
              for number in range(len(starts))]
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
-    evolutions, wide = len(runs) - len(starts), 0  # the DE runs and wide CMA-ES runs done
+    evolutions, wide = (0 if evolution is None else 1), 0  # the DE runs and wide CMA-ES runs done
     while True:
         certificate = Certificate(tuple(runs), evolutions + wide, budget, objective.evaluations)
         if certificate.converged:
@@ -665,13 +668,13 @@ def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, pops
 
 
 def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float,
-                 restarts: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 restarts: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Nelder-Mead (standard coefficients 1, 2, 1/2, 1/2) from every start at once; a simplex that has converged
     is restarted from its best vertex, at most `restarts` times, while its last (re)start lowered its best by more
     than RESTART_GAIN.
 
-    Returns each start's best value and point (its simplex's best vertex) and whether it ended converged (False:
-    the budget ended it first).
+    Returns each start's best value and whether it ended converged (False: the budget or NM_EVALUATIONS ended it
+    first).
 
     scipy's Nelder-Mead asks for one point at a time, so it cannot batch the starts; here
     each phase of an iteration (the reflections; the expansions and contractions; the shrinks and restarts)
@@ -682,7 +685,7 @@ def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float,
     edges = step * np.eye(dimension)
     converged = np.zeros(count, dtype=bool)
     if count * (dimension + 1) > objective.remaining:
-        return np.full(count, np.inf), starts.copy(), converged
+        return np.full(count, np.inf), converged
     simplex = starts[:, None, :] + np.concatenate([np.zeros((1, dimension)), edges])[None]
     values = objective(simplex.reshape(-1, dimension)).reshape(count, dimension + 1)
     restarted_at, restarts_left = values[:, 0].copy(), np.full(count, restarts)
@@ -743,5 +746,4 @@ def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float,
             simplex[shrinking, 1:] = shrunk
             values[shrinking, 1:] = objective(shrunk.reshape(-1, dimension)).reshape(len(shrinking), dimension)
             evaluated[shrinking] += dimension
-    best = np.argmin(values, axis=1)
-    return values[np.arange(count), best], simplex[np.arange(count), best], converged
+    return values.min(axis=1), converged

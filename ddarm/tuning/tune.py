@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ddarm.control.gains import SEARCH_START_OMEGAS
-from ddarm.episodes.bench import batch_rate
+from ddarm.episodes.bench import BENCH_EPISODES, batch_rates
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.tuning.robust import ScenarioScores, scenario_record, scenario_scores
@@ -101,7 +101,9 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
         warnings += (f'the budget ({budget} episodes{f" over {len(scenarios)} scenarios" if scenarios else ""}) left '
                      'no room for differential evolution: only local runs from the starts searched, so better '
                      'basins may have been missed; raise --budget',)
-    rate = batch_rate(with_gains(template, result.kp, result.kv)) if measure_batch_rate else None
+    rate = None
+    if measure_batch_rate:
+        rate = batch_rates(with_gains(template, result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust,
                   rate)
 
