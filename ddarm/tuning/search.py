@@ -49,9 +49,12 @@ NM_FTOL = 1e-10
 NM_EVALUATIONS = 200
 # The global search's DE samples the box between the ω-rule gains at the smallest start ω divided by OMEGA_SPAN
 # and at the largest times OMEGA_SPAN, each gain then spread by a factor e^{±GAIN_SPREAD}: every gain an ω rule
-# could suggest, and off-rule ratios between k_p and k_v and between joints. Its polish may leave the box.
+# could suggest, and off-rule ratios between k_p and k_v and between joints. Its polish may leave the box. The DE runs
+# after the first spread every gain by e^{±WIDE_GAIN_SPREAD}: on three of the shared cases the deepest basin lies at
+# or beyond the edge of the narrower box (a joint's k_p 20 times below every rule's, damped by its k_v alone).
 OMEGA_SPAN = 2.0
 GAIN_SPREAD = 1.5
+WIDE_GAIN_SPREAD = 3.0
 # DE's population per dimension (scipy's popsize): 15 × 2n members, one batch call per generation. A run stops once
 # its members' values agree within DE_TOL relative (scipy's tol), after DE_GENERATIONS generations, or once it has
 # spent DE_SHARE of the budget left at its start (the rest is for its polish and the other runs).
@@ -466,14 +469,14 @@ def least_budget(method: str, starts: int, dimension: int) -> int:
     return starts
 
 
-def search_box(starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def search_box(starts: np.ndarray, spread: float = GAIN_SPREAD) -> tuple[np.ndarray, np.ndarray]:
     """The box (low, high) in log gain that the global search's differential evolution samples.
 
     The starts' own span widened by OMEGA_SPAN in ω (so OMEGA_SPAN² in k_p, which the ω rules
     make grow as ω², and OMEGA_SPAN in k_v, as ω) and by GAIN_SPREAD in every gain.
     """
     dof = starts.shape[1] // 2
-    widening = np.concatenate([np.full(dof, 2.0), np.ones(dof)]) * np.log(OMEGA_SPAN) + GAIN_SPREAD
+    widening = np.concatenate([np.full(dof, 2.0), np.ones(dof)]) * np.log(OMEGA_SPAN) + spread
     low = np.maximum(starts.min(axis=0) - widening, np.log(GAIN_RANGE[0]))
     return low, np.minimum(starts.max(axis=0) + widening, np.log(GAIN_RANGE[1]))
 
@@ -638,7 +641,7 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
             break
         draws = np.random.default_rng([seed, evolutions + wide])
         if wide >= evolutions:
-            evolution = _evolution(objective, search_box(starts), popsize, draws,
+            evolution = _evolution(objective, search_box(starts, WIDE_GAIN_SPREAD), popsize, draws,
                                    f'differential evolution {evolutions + 1}')
             if evolution is None:
                 break
