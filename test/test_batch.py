@@ -125,6 +125,25 @@ def test_the_result_does_not_depend_on_the_number_of_threads():
     np.testing.assert_array_equal(one.diverged_at, two.diverged_at)
 
 
+@pytest.mark.parametrize('size, threads', [(5, 1), (12, 1), (15, 2), (90, 2)])
+def test_a_padded_chunk_gives_each_member_its_own_episode_to_the_last_bit(size, threads):
+    # Chunks with 4 to 7 members left over past a whole vector run padded (VECTOR_LANES): the spare lanes repeat a
+    # member and are dropped; every member, one that diverges among them, is its batch of one, series and all.
+    rng = np.random.default_rng(9)
+    kp = 225.0 * np.exp(0.3 * rng.normal(size=(size, 3)))
+    kv = 30.0 * np.exp(0.3 * rng.normal(size=(size, 3)))
+    kp[size - 2], kv[size - 2] = 1e6, 3e3
+    template = EpisodeSpec(**CT_15, tau=0.1)
+    batch = simulate_batch(template, kp, kv, series=True, threads=threads)
+    assert batch.I.shape == (size,) and batch.q.shape[0] == size and batch.diverged[size - 2]
+    for member in range(size):
+        alone = simulate_batch(template, kp[member:member + 1], kv[member:member + 1], series=True, threads=1)
+        assert batch.I[member] == alone.I[0] and batch.diverged_at[member] == alone.diverged_at[0]
+        assert batch.samples_scored[member] == alone.samples_scored[0]
+        for series in ('q', 'v', 'command', 'torque'):
+            np.testing.assert_array_equal(getattr(batch, series)[member], getattr(alone, series)[0])
+
+
 @pytest.mark.parametrize('case, delay', [(CT_15, 1), (PD_10, 0)])
 def test_the_default_substeps_keep_the_indices_within_1e_6_of_40_substeps(case, delay):
     # The ω-rule gains in the paper's settings: the reference case, with and without its
