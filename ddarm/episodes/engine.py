@@ -41,11 +41,14 @@ MAX_THREADS = 256
 # A batch shares out across threads only this many members per thread or more: measured side by side, a
 # smaller share cost more in handing it over than it saved (8 members took 4.2 ms on two threads, 2.1 ms on one).
 MIN_MEMBERS_PER_THREAD = 32
-# The compiled lane loops run VECTOR_LANES members at a time in SIMD registers and the members left over one by one,
-# each at about 2.3 times the cost (measured on the paper's arm: 7 members took 2.18 ms, 8 took 1.28 ms). A chunk
-# with PAD_FROM or more members left over runs a whole vector instead, the spare lanes repeating its last member;
-# their results are dropped. Each member's arithmetic is the same in either path, to the last bit.
+# On arms of up to VECTOR_JOINTS joints the compiled lane loops run VECTOR_LANES members at a time in SIMD registers
+# and the members left over one by one, each at about 2.3 times the cost (measured on the paper's arm: 7 members
+# took 2.18 ms, 8 took 1.28 ms; the same on the SCARA). There a chunk with PAD_FROM or more members left over runs a
+# whole vector instead, the spare lanes repeating its last member; their results are dropped. Each member's
+# arithmetic is the same in either path, to the last bit. On the UR5, the Z1 and the Panda (6 and 7 joints) a lane
+# cost about as much alone as in a vector (4 members 3.2 ms, 8 members 5.9 ms on the UR5): no padding there.
 VECTOR_LANES = 8
+VECTOR_JOINTS = 4
 PAD_FROM = 4
 
 
@@ -170,13 +173,13 @@ def _padded(width: int) -> int:
     return width + (VECTOR_LANES - left if left >= PAD_FROM else 0)
 
 
-def _chunk_layout(size: int, lanes: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+def _chunk_layout(size: int, lanes: int, dof: int) -> tuple[int, np.ndarray | None, np.ndarray | None]:
     """The lanes of each chunk of `size` members cut into chunks of `lanes`, padded (see VECTOR_LANES): (padded
     lanes, the member each padded lane runs, the padded lane of each member), or (lanes, None, None) if no chunk
     gains from padding."""
     padded_lanes, chunks = _padded(lanes), -(-size // lanes)
     last = size - (chunks - 1) * lanes
-    if padded_lanes == lanes and _padded(last) == last:
+    if dof > VECTOR_JOINTS or (padded_lanes == lanes and _padded(last) == last):
         return lanes, None, None
     widths = np.minimum(lanes, size - lanes * np.arange(chunks))
     runs = np.concatenate([start + np.minimum(np.arange(padded_lanes if number < chunks - 1 else _padded(width)),
@@ -287,7 +290,7 @@ class BatchRunner:
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not
         # 32 + 32 and 26.
         chunks_per_thread = -(-size // (threads * LANES))
-        lanes, runs, lane_of = _chunk_layout(size, -(-size // (threads * chunks_per_thread)))
+        lanes, runs, lane_of = _chunk_layout(size, -(-size // (threads * chunks_per_thread)), dof)
         members = (scale, kp, kv, v0, limit)
         if runs is not None:
             members = tuple(np.ascontiguousarray(array[runs]) for array in members)
