@@ -7,7 +7,15 @@ wall time and episodes, and its certificate when it gives one. The best known ga
 episode (`rescored`), and the gap is measured against that: a file written before a change of the model (the Panda's
 URDF `<dynamics>`, say) can hold a value ddarm no longer gives for those gains.
 
-    .venv/bin/python bench/search_cases.py ../shared/search-cases.json ../shared/search-cases-arms.json
+`bench/search-cases-own.json` holds the project's own cases, on the Z1, the UR5 and the SCARA with other laws,
+indices, periods and delays than the shared ones. Their best known minima come from long runs on this machine
+(2026-12-06, at fd7d82d): `ddarm tune`'s global search with a budget of 300,000 from seeds 0 and 1, and
+`--method nelder-mead` from ten ω between 4 and 40 with 150,000; each case lists every run's best. They are not
+independent of ddarm's search as the shared cases' are. (The Z1 at Δ = 0.02 s was tried and dropped: every gain
+diverged, its joint6 being stopped by its damping within a substep, as `ddarm episode` warns.)
+
+    .venv/bin/python bench/search_cases.py ../shared/search-cases.json ../shared/search-cases-arms.json \
+        bench/search-cases-own.json
     .venv/bin/python bench/search_cases.py CASES.json --only 0 3 --json results.json
 """
 
