@@ -9,9 +9,10 @@ finds basins the others miss (on cases outside the paper's tables, differential 
 one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First a
 differential evolution run (scipy's) from the best start, polished by local CMA-ES runs from its best distinct
 points; then Nelder-Mead from every ω-rule start, the law's own rule and the other law's, all side by side in one
-batch per step, its best distinct ends polished the same way; then, by turns, wide CMA-ES runs of doubling population (IPOP-CMA-ES) and further differential
-evolutions, each from its own draws. After each run a
-`Certificate` says how sure the search is: every run's best, the basins they ended in, how many agree with the best.
+batch per step, the simplices' best distinct ends polished the same way; then, by turns, wide CMA-ES runs of
+doubling population (IPOP-CMA-ES) and further differential evolutions over a wider box, each from its own draws.
+After each run a `Certificate` says how sure the search is: every run's best, the basins they ended in, how many
+agree with the best.
 The search stops once the certificate holds, or when the budget, a ceiling, has no room for another run; a result
 that has not converged says so.
 """
@@ -478,7 +479,7 @@ def search_box(starts: np.ndarray, spread: float = GAIN_SPREAD) -> tuple[np.ndar
     """The box (low, high) in log gain that the global search's differential evolution samples.
 
     The starts' own span widened by OMEGA_SPAN in ω (so OMEGA_SPAN² in k_p, which the ω rules
-    make grow as ω², and OMEGA_SPAN in k_v, as ω) and by GAIN_SPREAD in every gain.
+    make grow as ω², and OMEGA_SPAN in k_v, as ω) and by a factor e^{±spread} in every gain.
     """
     dof = starts.shape[1] // 2
     widening = np.concatenate([np.full(dof, 2.0), np.ones(dof)]) * np.log(OMEGA_SPAN) + spread
@@ -622,9 +623,8 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
     budget goes to it first; the other law's starts join from the Nelder-Mead on. Each start's
     Nelder-Mead is one independent run; so is the polish of their ends (drawing on after the first DE run), each
     DE run with its polish and each wide CMA-ES run, the later ones each from their own draws (seeded by `seed`
-    and their number). The CMA-ES runs
-    start from the best start with WIDE_SIGMA and double their population run after run (IPOP-CMA-ES). Returns
-    the runs, DE's generations in all, and the certificate.
+    and their number). The CMA-ES runs start from the best start with WIDE_SIGMA and double their population run
+    after run (IPOP-CMA-ES). Returns the runs, DE's generations in all, and the certificate.
     """
     budget = objective.budget * len(objective.scenarios)
     starts = np.vstack([own_starts, other_starts])
