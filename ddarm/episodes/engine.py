@@ -181,10 +181,12 @@ def _chunk_layout(size: int, lanes: int, dof: int) -> tuple[int, np.ndarray | No
     last = size - (chunks - 1) * lanes
     if dof > VECTOR_JOINTS or (padded_lanes == lanes and _padded(last) == last):
         return lanes, None, None
-    widths = np.minimum(lanes, size - lanes * np.arange(chunks))
-    runs = np.concatenate([start + np.minimum(np.arange(padded_lanes if number < chunks - 1 else _padded(width)),
-                                              width - 1)
-                           for number, (start, width) in enumerate(zip(lanes * np.arange(chunks), widths))])
+    widths = np.full(chunks, lanes)
+    widths[-1] = last
+    spans = np.full(chunks, padded_lanes)  # each chunk's lanes once padded
+    spans[-1] = _padded(last)
+    runs = np.concatenate([lanes * number + np.minimum(np.arange(span), width - 1)
+                           for number, (width, span) in enumerate(zip(widths, spans))])
     lane_of = np.concatenate([padded_lanes * number + np.arange(width) for number, width in enumerate(widths)])
     return padded_lanes, runs, lane_of
 

@@ -517,6 +517,9 @@ class _Share:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         return self.objective(points)
 
+    def history_points(self, since: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        return self.objective.history_points(since)
+
 
 def _finite(value: float) -> float:
     """An objective value as a run's index: +inf for a divergence penalty."""
@@ -555,17 +558,19 @@ def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsiz
     evolution = scipy.optimize.differential_evolution(
         lambda population: objective(population.T), list(zip(low, high)), vectorized=True, updating='deferred',
         popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
-    points, energies = objective.history_points(first_record if since is None else since)
-    best = min(_finite(evolution.fun), _local_cma(objective, points[_distinct_best(points, energies, FINALISTS)], rng))
+    best = min(_finite(evolution.fun), _polish(objective, first_record if since is None else since, rng))
     stopped_by = ('tol',) if evolution.success else ('generations',)
     return Restart(name, members, objective.evaluations - spent, best, stopped_by), int(evolution.nit)
 
 
-def _local_cma(objective: _Objective, centres: np.ndarray, rng, sigma: float = LOCAL_SIGMA) -> float:
-    """CMA-ES runs (σ0 = `sigma`, population LOCAL_POPSIZE) from each centre, their populations side by side in
-    one batch call, until cma stops each or the budget ends them, the last first; their best index."""
+def _polish(objective: _Objective, since: int, rng, sigma: float = LOCAL_SIGMA) -> float:
+    """Local CMA-ES runs (σ0 = `sigma`, population LOCAL_POPSIZE) from the FINALISTS best distinct points evaluated
+    since batch `since`, their populations side by side in one batch call, until cma stops each or the budget ends
+    them, the last first; their best index."""
     import cma  # see _cma
 
+    points, energies = objective.history_points(since)
+    centres = points[_distinct_best(points, energies, FINALISTS)]
     runs = [cma.CMAEvolutionStrategy(centre, sigma, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL))
             for centre in centres[:max(1, objective.remaining // LOCAL_POPSIZE)]]
     best = np.inf
@@ -581,16 +586,6 @@ def _local_cma(objective: _Objective, centres: np.ndarray, rng, sigma: float = L
             run.tell(population, run_values.tolist())
         runs = [run for run in runs if not run.stop()]
     return best
-
-
-def _polish(objective: _Objective, since: int, rng) -> Restart:
-    """The polish of the Nelder-Mead runs: local CMA-ES runs with σ0 POLISH_SIGMA from the FINALISTS best distinct
-    points evaluated since batch `since`, on at most POLISH_SHARE of the budget left."""
-    spent, share = objective.evaluations, _Share(objective, int(POLISH_SHARE * objective.remaining))
-    points, values = objective.history_points(since)
-    best = _local_cma(share, points[_distinct_best(points, values, FINALISTS)], rng, POLISH_SIGMA)
-    return Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, objective.evaluations - spent, best,
-                   ('budget',) if share.remaining < LOCAL_POPSIZE else ('converged',))
 
 
 def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str) -> Restart | None:
@@ -652,7 +647,10 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
                      _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
              for number in range(len(starts))]
     if len(taken):
-        runs.append(_polish(objective, phase_record, first_draws))
+        spent, share = objective.evaluations, _Share(objective, int(POLISH_SHARE * objective.remaining))
+        best = _polish(share, phase_record, first_draws, POLISH_SIGMA)
+        runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, objective.evaluations - spent,
+                            best, ('budget',) if share.remaining < LOCAL_POPSIZE else ('converged',)))
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
     evolutions, wide = (0 if evolution is None else 1), 0  # the DE runs and wide CMA-ES runs done
     while True:
