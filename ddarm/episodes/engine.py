@@ -38,9 +38,12 @@ MAX_SERIES_VALUES = 25_000_000
 # Members one thread advances together (see ddarm.physics.dynamics); measured best near 32 here.
 LANES = 32
 MAX_THREADS = 256
-# A batch shares out across threads only this many members per thread or more: measured side by side, a
-# smaller share cost more in handing it over than it saved (8 members took 4.2 ms on two threads, 2.1 ms on one).
-MIN_MEMBERS_PER_THREAD = 32
+# A batch shares out across threads only this many members per thread or more: a smaller share costs more in
+# handing it over than it saves. Measured side by side (best of 9, one thread against two): on the paper's arm,
+# whose members run 8 to a SIMD vector, 8 members took 1.18 ms against 1.77 ms, 32 took 3.66 ms against 2.96 ms and
+# 48 5.50 ms against 3.90 ms; on the Panda, whose members each cost about 1.2 ms, 8 took 9.87 ms against 5.71 ms.
+MIN_MEMBERS_PER_THREAD = 16
+MIN_MEMBERS_PER_THREAD_UNVECTORISED = 4
 # On arms of up to VECTOR_JOINTS joints the compiled lane loops run VECTOR_LANES members at a time in SIMD registers
 # and the members left over one by one, each at about 2.3 times the cost (measured on the paper's arm: 7 members
 # took 2.18 ms, 8 took 1.28 ms; the same on the SCARA). There a chunk with PAD_FROM or more members left over runs a
@@ -287,7 +290,8 @@ class BatchRunner:
                              f'ask for fewer episodes or no series')
         if threads is None:
             threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
-        threads = min(threads, max(1, size // MIN_MEMBERS_PER_THREAD))
+        least = MIN_MEMBERS_PER_THREAD if dof <= VECTOR_JOINTS else MIN_MEMBERS_PER_THREAD_UNVECTORISED
+        threads = min(threads, max(1, size // least))
         # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not
         # 32 + 32 and 26.
