@@ -5,8 +5,10 @@ import pytest
 
 from ddarm.episodes.engine import run_episode
 from ddarm.episodes.spec import EpisodeSpec
+from ddarm.tuning import search
 from ddarm.tuning.search import SearchError, omega_starts, search_gains
 from reference_episode import reference_episode
+from test_arms import example_spec
 
 CT = EpisodeSpec(controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, delay=1)
 PD = EpisodeSpec(controller='pd_gravity', kp=(2800.0, 2700.0, 350.0), kv=(560.0, 540.0, 70.0), delay=0)
@@ -99,6 +101,8 @@ def test_the_global_search_certifies_its_best_by_independent_runs_and_stops_once
     assert certificate.summary().startswith('converged: ')
     as_json = certificate.to_dict()
     assert as_json['converged'] is True and as_json['runs_within_0_5_percent'] == agreeing
+    # 6 gains: every polish runs to cma's end, and there is no final one.
+    assert certificate.final_polish is None and as_json['final_polish'] is None
     assert sum(basin['runs'] for basin in as_json['basins']) == sum(np.isfinite(r.index) for r in result.restarts)
     assert as_json['basins'][0]['index'] == pytest.approx(result.index)
     # The independent reference loop, whose different order of sums parts from the engine's by ~1e-8.
@@ -120,3 +124,64 @@ def test_the_other_methods_give_no_certificate():
     kp, kv = omega_starts(CT, [15.0])
     result = search_gains(CT, index='I', start_kp=kp, start_kv=kv, budget=60, method='nelder-mead')
     assert result.certificate is None and result.converged is None
+
+
+class _Bowl:
+    """A stand-in for the search's objective: 1 + |x|^2 over log gains, its points and values kept."""
+
+    def __init__(self, budget: int) -> None:
+        self.remaining, self.calls, self.points, self.values = budget, 0, [np.full((1, 4), 0.3)], [np.array([1.36])]
+
+    def __call__(self, points):
+        values = 1.0 + np.sum(np.asarray(points) ** 2, axis=1)
+        self.remaining -= len(points)
+        self.calls += 1
+        self.points.append(np.asarray(points))
+        self.values.append(values)
+        return values
+
+    def history_points(self, since=0):
+        return np.concatenate(self.points[since:]), np.concatenate(self.values[since:])
+
+
+def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to_cmas_end():
+    stalled, full = _Bowl(100_000), _Bowl(100_000)
+    best = search._polish(stalled, 0, np.random.default_rng(0), 0.1, search.POLISH_STALL)
+    search._polish(full, 0, np.random.default_rng(0), 0.1)
+    assert search.STALL_CALLS < stalled.calls < full.calls and full.remaining > 0
+    # It stopped at the first call whose best had improved by less than the stall over the last STALL_CALLS calls.
+    bests = np.minimum.accumulate([values.min() for values in stalled.values[1:]])
+    assert best == bests[-1] and bests[-1 - search.STALL_CALLS] - best <= search.POLISH_STALL * best
+    assert all(bests[call - search.STALL_CALLS] - bests[call] > search.POLISH_STALL * bests[call]
+               for call in range(search.STALL_CALLS, len(bests) - 1))
+
+
+def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_points_outside_the_agreement():
+    template = example_spec('scara', 'pd_gravity')  # 4 joints: 8 gains
+    kp, kv = omega_starts(template, [5.0, 10.0])
+    budget = 6000
+    result = search_gains(template, index='I', start_kp=kp, start_kv=kv, budget=budget, method='global', seed=1)
+    polish = result.certificate.final_polish
+    assert polish is not None and polish not in result.certificate.runs and result.episodes <= budget
+    assert sum(run.episodes for run in result.restarts) + polish.episodes <= result.episodes
+    assert result.certificate.episodes == result.episodes
+    assert result.index == pytest.approx(min([run.index for run in result.restarts] + [polish.index]), rel=1e-12)
+    as_json = result.certificate.to_dict()
+    assert as_json['final_polish']['episodes'] == polish.episodes
+    assert as_json['converged'] == result.certificate.converged
+
+
+@pytest.mark.parametrize('polish_episodes, line', [
+    (640, 'Then a final polish of the best points (not one of the runs above): best I 0.98 in 640 episodes.'),
+    (0, 'The runs left no budget for a final polish of the best points.')])
+def test_the_report_names_the_final_polish_beside_the_runs_it_is_not_one_of(polish_episodes, line):
+    from ddarm.tuning.report import certificate_section
+
+    runs = tuple(search.Restart(f'run {number}', 1, 100, value, ('converged',))
+                 for number, value in enumerate([1.0, 1.001, 1.2]))
+    polish = search.Restart('final CMA-ES polish of the best points', 16, polish_episodes,
+                            0.98 if polish_episodes else np.inf, ('converged',))
+    certificate = search.Certificate(runs, 2, 1000, 300 + polish_episodes, final_polish=polish)
+    lines = certificate_section(certificate.to_dict(), 'I')
+    assert line in lines and not any('final CMA-ES polish' in text for text in lines)  # not a row of the runs
+    assert certificate.within(0.005) == 2 and certificate.best == 1.0  # the polish is not a run
