@@ -38,18 +38,18 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from ddarm.control.gains import gains_from_parameters
-from ddarm.control.laws import (CONTROLLERS, MAX_DELAY, GainError, Measurement, ReferencePoint, SampledController,
+from ddarm.control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
 from ddarm.errors import DdarmError
 from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import MotionError, nominal_torque
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
-from ddarm.physics.plant import NODE_PERIOD_RANGE
 from ddarm.ros.lifecycle import ManagedNode
-from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, EFFORT_COMMAND_TOPIC, GAIN_KEYS,
+from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, GAIN_KEYS,
                                      JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC, ROBOT_COMMAND_QOS,
-                                     ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotLimits, RobotState, descriptor,
+                                     ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotLimits, RobotState, declare_from_schema,
+                                     declare_joint_gains,
                                      effort_array_msg, gain_joint, gain_parameter, given_gains, plain_parameters,
                                      proposed_values, read_joint_state, read_reference, read_robot_state,
                                      refuse_undeclared_parameters, undeclared_overrides,
@@ -57,14 +57,12 @@ from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOP
 from ddarm.realtime import SchedulingError
 from ddarm.ros.cdr import JointStateEncoder, decode_joint_state
 from ddarm.ros.executable import REFUSED, non_utf8_argument, run_node
-from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
+from ddarm.ros.scheduling import NodeScheduling
 from ddarm.samples import MAX_REFERENCE_POINTS, MessageError
 
 # States that arrive before the programmed motion wait for it, up to this many.
 MAX_WAITING_STATES = 10_000
 SAMPLINGS = ('state', 'timer')
-# The range of a gains.<joint>.p or .d parameter; 0 means unset (kp/kv or omega give the gains).
-MAX_GAIN = 1e9
 # Timer mode logs a recurring fault (a stale state, a refused one) at most this often, s; each is counted.
 LOG_EVERY = 1.0
 # Timer mode says what it waits for (a /clock, a state) this often, wall s, until the motion starts.
@@ -276,77 +274,12 @@ class ControllerNode(ManagedNode):
         self.start_time = self.tick_sample = None
 
     def _declare_parameters(self) -> None:
-        double_array = Parameter.Type.DOUBLE_ARRAY
-        declared = [
-            ('urdf', '', descriptor('URDF of the controller model ("" = the ddarm arm)', read_only=True)),
-            ('motion', '', descriptor('motion file: its joint_names are the controlled joints (the others locked '
-                                      'at its locked positions), and in timer mode its motion is the reference '
-                                      '("" = every joint of the URDF, the reference from /reference)',
-                                      read_only=True)),
-            ('duration', 0.0, descriptor('timer mode: T of the motion in s, as the gains were tuned (a bang-bang '
-                                         'motion is stretched to it); 0 = the motion file\'s own',
-                                         floating=(0.0, 3600.0), read_only=True)),
-            ('joints', Parameter.Type.STRING_ARRAY, descriptor('joint names in URDF order, the order of kp and kv '
-                                                               '(unset: from the motion file, else the URDF)',
-                                                               read_only=True)),
-            ('kp', double_array, descriptor('K_p diagonal, one positive value per joint (or gains.<joint>.p)')),
-            ('kv', double_array, descriptor('K_v diagonal, one positive value per joint (or gains.<joint>.d)')),
-            ('omega', 0.0, descriptor('ω rule of section 2 when > 0 (overrides kp, kv and gains)',
-                                      floating=(0.0, 1e4))),
-            ('compute_delay_steps', 1, descriptor('compute delay d in samples', integer=(0, MAX_DELAY))),
-            ('period', 0.01, descriptor('sampling period Δ in s (state: to read sample indices from stamps; '
-                                        'timer: the timer period, fixed while the node runs)',
-                                        floating=NODE_PERIOD_RANGE)),
-            ('max_sample_gap', 100, descriptor('states more than this many samples ahead of the expected one '
-                                               'are refused (sampling state)', integer=(1, 1_000_000))),
-            ('viscous_friction', double_array, descriptor("model friction F̂ (computed torque) beyond "
-                                                          "the URDF's <dynamics damping>, N m s/rad")),
-            ('coulomb_friction', double_array, descriptor("model friction F̂ (computed torque) beyond "
-                                                          "the URDF's <dynamics friction>, N m")),
-            ('sampling', 'state', descriptor('state: one command per stamped state (lockstep with ddarm\'s plant); '
-                                             'timer: a timer at 1/period samples the latest /joint_states',
-                                             read_only=True)),
-            ('command_type', 'joint_state', descriptor('joint_state: a stamped JointState with names; '
-                                                       'float64_multi_array: the efforts in joint order, as a '
-                                                       'forward_command_controller takes them', read_only=True)),
-            ('command_topic', EFFORT_COMMAND_TOPIC, descriptor('the topic of the effort commands (a robot\'s: '
-                                                               '/<controller>/commands)', read_only=True)),
-            ('clamp_efforts', True, descriptor('sampling timer: clamp each effort to its joint\'s limit '
-                                               '(effort_limits, else the URDF\'s <limit effort>), counted and '
-                                               'logged; false publishes the law\'s efforts as they are')),
-            ('effort_limits', double_array, descriptor('sampling timer: the largest |effort| of each joint, N m or '
-                                                       'N, in joint order, each finite and > 0 (unset: the '
-                                                       'URDF\'s <limit effort>)')),
-            ('position_margin', 0.1, descriptor('sampling timer: a state with a position beyond its joint\'s URDF '
-                                                'limits by more than this (rad or m; continuous joints have none) '
-                                                'is refused, as is one that moved since the state held by more '
-                                                'than the velocity bound allows plus this', floating=(0.0, 1e3))),
-            ('velocity_limit_factor', 2.0, descriptor('sampling timer: the velocity bound is this times the '
-                                                      'URDF\'s <limit velocity>; a state beyond it is refused',
-                                                      floating=(1.0, 1e6))),
-            ('max_state_lead', 0.1, descriptor('sampling timer: a state stamped more than this many s ahead of '
-                                               'the node\'s clock is refused, and the state held is dropped once '
-                                               'it is that far ahead (the clock went back)',
-                                               floating=(0.0, 3600.0))),
-            ('max_clock_jump', 0.5, descriptor('sampling timer: ticks missed within this many s are skipped; when '
-                                               'the node\'s clock jumps further, ahead or back, between two ticks, '
-                                               'the motion goes on from the next sample (re-anchored)',
-                                               floating=(0.0, 3600.0))),
-            ('autostart', True, descriptor('configure and activate at launch (else wait for the lifecycle '
-                                           'services)', read_only=True)),
-            *scheduling_declarations(),
-        ]
-        for name, default, described in declared:
-            self.declare_parameter(name, default, described)
+        declare_from_schema(self, 'controller')
 
     def _declare_gains(self) -> None:
         """gains.<joint>.p and gains.<joint>.d for each controlled joint: ros2_controllers' gains by joint name."""
         for joint in self.joints:
-            for key, gain in zip(GAIN_KEYS, ('K_p', 'K_v')):
-                if self.has_parameter(gain_parameter(joint, key)):  # declared at an earlier configure
-                    continue
-                self.declare_parameter(gain_parameter(joint, key), 0.0, descriptor(
-                    f'{gain} of {joint}, > 0 (0 = unset: kp/kv or omega give the gains)', floating=(0.0, MAX_GAIN)))
+            declare_joint_gains(self, joint)
 
     def _model(self, values: dict) -> tuple[Arm, list[str]]:
         """The controller's model and its joints: the motion file's (the others locked), else the URDF's."""

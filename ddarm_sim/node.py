@@ -14,7 +14,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
-from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
@@ -24,18 +23,19 @@ from ddarm.motion.files import motion_of_duration
 from ddarm.physics.arm import Arm, ModelError
 from ddarm.physics.dynamics import chain_from_model
 from ddarm.physics.mujoco_plant import MujocoPlant, Robot, RobotError, at_period, load_robot
-from ddarm.physics.plant import (DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE, Plant, PlantError, PlantOptions,
+from ddarm.physics.plant import (Plant, PlantError, PlantOptions,
                                  checked_mass_scale, warm_up)
-from ddarm.realtime import SPIN_MARGIN_RANGE, SchedulingError, TickThread, period_ns
+from ddarm.realtime import SchedulingError, TickThread, period_ns
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC,
                                      EFFORT_COMMAND_TOPIC, JOINT_STATES_TOPIC, SAMPLE_QOS,
-                                     descriptor, plain_parameters, proposed_values,
+                                     declare_from_schema, plain_parameters, proposed_values,
                                      read_joint_state, refuse_undeclared_parameters, time_msg,
                                      undeclared_overrides)
 from ddarm.ros.cdr import JointStateEncoder, decode_joint_state, encode_clock
 from ddarm.ros.executable import run_node
 from ddarm.ros.lifecycle import ManagedNode
-from ddarm.ros.scheduling import NodeScheduling, scheduling_declarations
+from ddarm.ros.scheduling import NodeScheduling
+from ddarm.ros.parameter_schema import DEFAULT_SPIN_MARGIN
 from ddarm.samples import MessageError
 from ddarm.arrays import per_joint
 from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_start
@@ -43,9 +43,6 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES, MotionError, disturbed_s
 MODES = ('lockstep', 'realtime')
 WATCHDOG_PERIOD = 0.05  # s
 IDLE, STARTING, RUNNING, ENDED = 'idle', 'starting', 'running', 'ended'
-# s: a real-time tick wakes this long before its deadline and spins to it. 1 ms took the p99 period jitter from
-# a wake-up's to the spin's (bench/realtime_jitter.py); it costs a tenth of a core at 100 Hz.
-DEFAULT_SPIN_MARGIN = 0.001
 
 
 @dataclass(frozen=True)
@@ -323,53 +320,7 @@ class PlantNode(ManagedNode):
         self.command_subscription = self.reset_service = self.watchdog = None
 
     def _declare_parameters(self) -> None:
-        double_array = Parameter.Type.DOUBLE_ARRAY
-        declared = [
-            ('urdf', '', descriptor('URDF of the arm ("" = the ddarm arm)', read_only=True)),
-            ('motion', '', descriptor('a motion file: the controlled joints, locked joints and q^d(0); '
-                                      '"" = the paper trajectory of `trajectory`', read_only=True)),
-            ('mjcf', '', descriptor('a MuJoCo robot (MJCF, or a URDF MuJoCo compiles) stepped instead of ddarm\'s '
-                                    'plant, its joints those of the arm ("" = ddarm\'s plant on `urdf`)',
-                                    read_only=True)),
-            ('mjcf_joints', Parameter.Type.STRING_ARRAY, descriptor(
-                "the MJCF's name of each joint of the arm, in its order (unset: the same names)", read_only=True)),
-            ('mode', 'lockstep', descriptor('lockstep (deterministic) or realtime (wall clock at 1/period)')),
-            ('period', 0.01, descriptor('sampling period Δ in s', floating=NODE_PERIOD_RANGE)),
-            ('substeps', DEFAULT_SUBSTEPS, descriptor('RK4 steps per sampling period', integer=(1, MAX_SUBSTEPS))),
-            ('command_timeout', 5.0, descriptor('lockstep: wall seconds to wait for a command', floating=(1e-3, 3600.0))),
-            ('required_subscribers', 1, descriptor('joint_states subscribers to wait for before sample 0',
-                                                   integer=(1, 100))),
-            ('required_clock_subscribers', 0, descriptor('/clock subscribers to wait for before sample 0 (a recorder '
-                                                         'of every tick)', integer=(0, 100))),
-            ('max_samples', 0, descriptor('periods integrated per episode (0: until reset)', integer=(0, 10**6))),
-            ('torque_limit', double_array, descriptor('actuator limit |P_i| in N m per joint (unset: none)')),
-            ('viscous_friction', double_array, descriptor("viscous friction N m s/rad per joint beyond the URDF's "
-                                                          '<dynamics damping> (unset: none)')),
-            ('coulomb_friction', double_array, descriptor("Coulomb friction N m per joint beyond the URDF's "
-                                                          '<dynamics friction> (unset: none)')),
-            ('external_torque', double_array, descriptor('constant external joint torques P^z in N m (unset: none)')),
-            ('mass_scale', double_array, descriptor('plant link mass / model link mass per link (unset: 1)')),
-            ('trajectory', 1, descriptor(f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} '
-                                         '(of `motion`, when set, whatever the number); 0: '
-                                         'initial_position/velocity', integer=(0, max(PAPER_TRAJECTORIES)))),
-            ('duration', 0.0, descriptor('T of the programmed motion in s (for the start state; a bang-bang '
-                                         'motion is stretched to it); 0 = the motion\'s own (the paper\'s: 1 s)',
-                                         floating=(0.0, 3600.0))),
-            ('tau', 0.0, descriptor('initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s',
-                                    floating=(0.0, 3600.0))),
-            ('initial_position', double_array, descriptor('start position when trajectory = 0')),
-            ('initial_velocity', double_array, descriptor('start velocity when trajectory = 0')),
-            ('autostart', True, descriptor('start an episode at launch (else on ~/reset)')),
-            ('managed', False, descriptor('start unconfigured and wait for the lifecycle services (configure, '
-                                          'activate: activate starts an episode, as ~/reset does); false: '
-                                          'configured and activated at launch', read_only=True)),
-            ('spin_margin', DEFAULT_SPIN_MARGIN, descriptor(
-                'realtime: s before each deadline the tick wakes and spins on the clock to it (0: no spin); '
-                'less than the period', floating=SPIN_MARGIN_RANGE)),
-            *scheduling_declarations(),
-        ]
-        for name, default, described in declared:
-            self.declare_parameter(name, default, described)
+        declare_from_schema(self, 'plant')
 
     def _parameter_values(self, changes=()) -> dict:
         return proposed_values(self, changes)

@@ -23,7 +23,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
-from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -37,15 +36,13 @@ from ddarm.ros.cdr import JointStateEncoder, Stamp, encode_clock, stamp_of_ns
 from ddarm.ros.executable import run_node
 from ddarm.ros.lifecycle import ManagedNode
 from ddarm.ros.interface import (CLOCK_QOS, CLOCK_TOPIC, DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC, JOINT_STATES_TOPIC,
-                                 ROBOT_COMMAND_QOS, SAMPLE_QOS, descriptor, proposed_values,
+                                 ROBOT_COMMAND_QOS, SAMPLE_QOS, declare_from_schema, proposed_values,
                                  refuse_undeclared_parameters, time_msg, undeclared_overrides)
 
 MODES = ('realtime', 'lockstep')
-COMMAND_TOPIC = '/effort_controller/commands'  # ros2_controllers' effort forward_command_controller, so named
 # The command in force over each period, stamped at the period's start: the evidence of what the robot was asked
 # for at each sample (a Float64MultiArray carries no stamp), recorded and scored as a plant's commands are.
 COMMANDED_EFFORT_TOPIC = '~/commanded_effort'
-RATE_RANGE = (1.0, 10_000.0)  # Hz
 WATCHDOG_PERIOD = 0.05  # wall s between checks of start-up and, in lockstep, of the command timeout
 # Lockstep, before the first command: sample 0 is published again one period later this often (wall s). A
 # controller on /clock ticks only when the clock moves, and its first tick may have come before its first state.
@@ -113,42 +110,7 @@ class RobotNode(ManagedNode):
             self.launch(RobotNodeError)
 
     def _declare_parameters(self) -> None:
-        double_array = Parameter.Type.DOUBLE_ARRAY
-        declared = [
-            ('mjcf', '', descriptor('the MuJoCo robot: an MJCF, or a URDF MuJoCo compiles', read_only=True)),
-            ('joints', Parameter.Type.STRING_ARRAY, descriptor(
-                'the joints, in the order of the commands and of /joint_states (unset: every hinge and slide '
-                'joint of the MJCF, in its order)', read_only=True)),
-            ('command_topic', COMMAND_TOPIC, descriptor('the topic of the effort commands, a Float64MultiArray '
-                                                        'in the order of joints', read_only=True)),
-            ('mode', 'realtime', descriptor('realtime: free-running on the wall clock at rate; lockstep: one '
-                                            'period per command, /clock published', read_only=True)),
-            ('rate', 100.0, descriptor('samples per second, Hz: 1/rate must be a whole number of the MJCF\'s '
-                                       'timesteps', floating=RATE_RANGE, read_only=True)),
-            ('initial_position', double_array, descriptor('q at activation, one per joint (unset: the MJCF\'s '
-                                                          'qpos0)')),
-            ('initial_velocity', double_array, descriptor('q̇ at activation, one per joint (unset: zero)')),
-            ('position_noise', 0.0, descriptor('standard deviation of the noise on each reported position, rad '
-                                               'or m', floating=(0.0, 10.0))),
-            ('velocity_noise', 0.0, descriptor('standard deviation of the noise on each reported velocity, rad/s '
-                                               'or m/s', floating=(0.0, 100.0))),
-            ('noise_seed', 0, descriptor('seed of the noise (the same seed, the same noise)',
-                                         integer=(0, 2 ** 31 - 1))),
-            ('command_latency', 0.0, descriptor('s from a command\'s arrival to the joints (lockstep: a whole '
-                                                'number of periods)', floating=(0.0, 10.0))),
-            ('command_timeout', 1.0, descriptor('s without a command after which the efforts are zeroed until the '
-                                                'next (lockstep: wall s before a period runs without one); 0: '
-                                                'never', floating=(0.0, 3600.0))),
-            ('hold_until_commanded', True, descriptor('hold the joints at the start state until the first command '
-                                                     'comes into force, as brakes hold a robot until its controller '
-                                                     'starts (false: it moves under gravity from activation)')),
-            ('required_subscribers', 1, descriptor('lockstep: /joint_states subscribers to wait for before sample 0',
-                                                   integer=(1, 100))),
-            ('autostart', True, descriptor('configure and activate at launch (else wait for the lifecycle '
-                                           'services)', read_only=True)),
-        ]
-        for name, default, described in declared:
-            self.declare_parameter(name, default, described)
+        declare_from_schema(self, 'robot')
 
     # Lifecycle ---------------------------------------------------------------------------------
 

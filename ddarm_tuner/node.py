@@ -7,24 +7,21 @@ import time
 
 import numpy as np
 from rclpy.executors import ExternalShutdownException
-from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 
-from ddarm.control.laws import CONTROLLERS, MAX_DELAY
-from ddarm.motion.programmed import PAPER_TRAJECTORIES
-from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
+from ddarm.control.laws import CONTROLLERS
 from ddarm.ros.executable import run_executable
 from ddarm.ros.executors import node_executor
 from ddarm.ros.parameter_files import parameter_document
-from ddarm.ros.interface import (descriptor, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
+from ddarm.ros.interface import (declare_from_schema, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
                                  undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode, read_motion_file
 from ddarm.interrupts import Interrupted, stop_on_signals
-from ddarm.ros.driver import PEER_TIMEOUT, GraphDriver, GraphEpisodeError
+from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.node_parameters import READ_ONLY, episode_record, same_read_only
-from ddarm.recording.runs import DEFAULT_ROOT, RunFolder
+from ddarm.recording.runs import RunFolder
 
 
 class TunerNode(GraphDriver):
@@ -40,37 +37,7 @@ class TunerNode(GraphDriver):
     def __init__(self, **kwargs) -> None:
         super().__init__('tuner', **kwargs)
         self._given_overrides = tuple(kwargs.get('parameter_overrides') or ())  # rclpy has no public view
-        double_array = Parameter.Type.DOUBLE_ARRAY
-        declared = [
-            ('controller', 'computed_torque', descriptor(f'the law to drive: one of {CONTROLLERS}')),
-            ('kp', double_array, descriptor('K_p diagonal (unless gains_file)')),
-            ('kv', double_array, descriptor('K_v diagonal (unless gains_file)')),
-            ('gains_file', '', descriptor('controller parameter YAML with kp, kv, compute_delay_steps')),
-            ('urdf', '', descriptor('URDF of the plant\'s arm ("" = the ddarm arm); the plant node must run it',
-                                    read_only=True)),
-            ('model_urdf', '', descriptor('URDF of the controller\'s model ("" = urdf); the controller node must '
-                                          'run it', read_only=True)),
-            ('motion', '', descriptor('a motion file: the controlled joints, locked joints and q^d ("" = the paper '
-                                      'trajectory of `trajectory`); plant and controller must run it', read_only=True)),
-            ('trajectory', 1, descriptor(f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)} (unless motion)',
-                                         integer=(min(PAPER_TRAJECTORIES), max(PAPER_TRAJECTORIES)))),
-            ('duration', 0.0, descriptor('T in s (0: the motion\'s own; a bang-bang motion is stretched to T)',
-                                         floating=(0.0, 3600.0))),
-            ('period', 0.01, descriptor('Δ in s', floating=NODE_PERIOD_RANGE)),
-            ('delay', 1, descriptor('compute delay d in samples (unless gains_file)', integer=(0, MAX_DELAY))),
-            ('substeps', DEFAULT_SUBSTEPS, descriptor('plant RK4 steps per period', integer=(1, MAX_SUBSTEPS))),
-            ('taus', [0.0], descriptor('initial velocity disturbances τ (3.1), one episode each, s')),
-            ('torque_limits', ['none'], descriptor("'none', 'paper' (2 x max nominal) and/or 'urdf' (its <limit "
-                                                   "effort>), each with every τ")),
-            ('output_root', str(DEFAULT_ROOT), descriptor('folder that holds the run folders')),
-            ('run_name', '', descriptor('run folder name ("" = tuner-<date>-<time>); never reused')),
-            ('storage', 'mcap', descriptor('bag storage: mcap or sqlite3')),
-            ('episode_timeout', 120.0, descriptor('wall seconds one episode may take', floating=(1.0, 86400.0))),
-            ('peer_timeout', PEER_TIMEOUT, descriptor('wall seconds to wait for the plant and the controller '
-                                                      'on the graph before each episode', floating=(0.1, 3600.0))),
-        ]
-        for name, default, described in declared:
-            self.declare_parameter(name, default, described)
+        declare_from_schema(self, 'tuner')
         refuse_undeclared_parameters(self, 'tuner')
         try:
             self.specs = self._checked_sweep()

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from ddarm.cli.main import build_parser
+from ddarm.control.laws import CONTROLLERS
 
 PAGE = Path(__file__).resolve().parents[2] / 'docs' / 'cli.md'
 
@@ -100,10 +101,15 @@ def _value(value) -> str:
     return repr(value) if isinstance(value, str) else str(value)
 
 
-def _node_section(title: str, run: str, node, required: dict) -> list[str]:
-    """A node's page section from the node itself: what it publishes, subscribes to, serves and declares."""
+def _node_section(title: str, run: str, node, required: dict, kind: str) -> list[str]:
+    """A node's page section from the node itself: what it publishes, subscribes to, serves and declares (with each
+    parameter's unit from the schema, `kind`'s rows: a ParameterDescriptor has no field for it)."""
     from rclpy.node import Node
     from rclpy.parameter import Parameter
+
+    from ddarm.ros.parameter_schema import parameters_of
+
+    units = {parameter.name: parameter.unit for parameter in parameters_of(kind)}
 
     own = f'{node.get_name()}/'
     lines = ['', f'## {title}', '', f'`{run}`', '', '| topic | direction | type | QoS |', '|---|---|---|---|']
@@ -119,14 +125,16 @@ def _node_section(title: str, run: str, node, required: dict) -> list[str]:
                       for service in Node.services.fget(node) if not service.srv_name.startswith(own))
     lines += ['', 'Services: ' + (', '.join(f'`{name}` (`{kind}`)' for name, kind in services) or 'none')
               + '; and the standard parameter services.']
-    lines += ['', '| parameter | type | default | range | read-only | description |', '|---|---|---|---|---|---|']
+    lines += ['', '| parameter | type | default | range | unit | read-only | description |',
+              '|---|---|---|---|---|---|---|']
     names = sorted(node._parameters)
     for name, descriptor in zip(names, node.describe_parameters(names)):
         unset = Parameter(name, Parameter.Type.NOT_SET)
         default = 'required' if name in required else _value(node.get_parameter_or(name, unset).value)
         read_only = 'yes' if descriptor.read_only else ''
         lines.append(f'| `{name}` | {PARAMETER_TYPES.get(descriptor.type, "")} | {_cell(default)} | '
-                     f'{_range(descriptor)} | {read_only} | {_cell(descriptor.description)} |')
+                     f'{_range(descriptor)} | {_cell(units.get(name, ""))} | {read_only} | '
+                     f'{_cell(descriptor.description)} |')
     return lines
 
 
@@ -160,10 +168,12 @@ def ros_interface() -> str:
                       TunerNode(context=context, parameter_overrides=overrides('tuner'))))
         lines = ['# The ROS 2 interface of ddarm\'s nodes', '',
                  'Generated from the nodes themselves by `make docs` (`python -m ddarm.cli.docs`): each node started '
-                 'with its defaults, its topics, services and declared parameters read back. Do not edit by hand. '
+                 'with its defaults, its topics, services and declared parameters read back. Do not edit by hand: '
+                 'every parameter is defined in `ddarm/ros/parameter_schema.py`, which the nodes declare theirs from. '
                  'A default `required` must be given (kp and kv, or the gains by joint).']
         for title, run, node in nodes:
-            lines += _node_section(title, run, node, REQUIRED.get(title, {}))
+            kind = 'controller' if title in CONTROLLERS else title
+            lines += _node_section(title, run, node, REQUIRED.get(title, {}), kind)
         return '\n'.join(lines) + '\n'
     finally:
         for _, _, node in nodes:

@@ -37,9 +37,8 @@ from ddarm.recording.bags import BagError, EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
 from ddarm.interrupts import check_stop
+from ddarm.ros.parameter_schema import PEER_TIMEOUT
 
-# Wall seconds to wait for the plant and the controller to be on the graph, alone, before an episode.
-PEER_TIMEOUT = 20.0
 # How often the graph is checked while an episode runs, and how long a node may be missing from
 # it before the episode fails (discovery can lag a little; a foreign publisher fails at once).
 GRAPH_CHECK_PERIOD = 0.5

@@ -23,11 +23,13 @@ from ddarm.ros.cdr import stamp_of
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
+from ddarm.ros.parameter_schema import GAIN_KEYS, NodeParameter, joint_gains, parameters_of
+# Defined with the controllers' parameters (command_topic's default), named here with the other topics.
+from ddarm.ros.parameter_schema import EFFORT_COMMAND_TOPIC  # noqa: F401
 from ddarm.samples import (MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at,
                            stamp_ns)
 
 JOINT_STATES_TOPIC = 'joint_states'
-EFFORT_COMMAND_TOPIC = 'effort_command'
 REFERENCE_TOPIC = 'reference'
 CLOCK_TOPIC = '/clock'
 DIAGNOSTICS_TOPIC = '/diagnostics'
@@ -270,10 +272,33 @@ def descriptor(description: str, *, floating: tuple[float, float] | None = None,
     return described
 
 
+def _declare(node, parameter: NodeParameter) -> None:
+    from rclpy.parameter import Parameter
+
+    unset = {'integer[]': Parameter.Type.INTEGER_ARRAY, 'double[]': Parameter.Type.DOUBLE_ARRAY,
+             'string[]': Parameter.Type.STRING_ARRAY}
+    ranged = {} if parameter.range is None else {
+        'floating' if parameter.type == 'double' else 'integer': parameter.range}
+    node.declare_parameter(parameter.name, unset[parameter.type] if parameter.default is None else parameter.default,
+                           descriptor(parameter.description, read_only=parameter.read_only, **ranged))
+
+
+def declare_from_schema(node, kind: str) -> None:
+    """Declare the parameters of a node of `kind` (ddarm.ros.parameter_schema.NODES) as the schema gives them."""
+    for parameter in parameters_of(kind):
+        _declare(node, parameter)
+
+
+def declare_joint_gains(node, joint: str) -> None:
+    """Declare gains.<joint>.p and gains.<joint>.d, unless an earlier configure did."""
+    for parameter in joint_gains(joint):
+        if not node.has_parameter(parameter.name):
+            _declare(node, parameter)
+
+
 # Gains keyed by joint name, as ros2_controllers' pid gains: `gains: {joint: {p: …, d: …}}` in a parameter file,
 # which ROS 2 flattens into the parameters gains.<joint>.p (K_p) and gains.<joint>.d (K_v).
 GAINS_PREFIX = 'gains'
-GAIN_KEYS = ('p', 'd')
 
 
 def gain_parameter(joint: str, key: str) -> str:

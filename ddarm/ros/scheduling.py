@@ -1,28 +1,12 @@
 """The real-time parameters every ddarm node process has (realtime_priority, cpu_affinity): declared alike on the
-plant and the controllers, applied to the whole process when set, and refused, naming what the OS needs, when
+plant and the controllers (ddarm.ros.parameter_schema.SCHEDULING), applied to the whole process when set, and refused, naming what the OS needs, when
 it will not (ddarm.realtime); the old scheduling then stays."""
 
 from __future__ import annotations
 
-from rclpy.parameter import Parameter
-
-from ddarm.realtime import PRIORITY_RANGE, ProcessScheduling, Scheduling, SchedulingError
-from ddarm.ros.interface import descriptor
+from ddarm.realtime import ProcessScheduling, Scheduling, SchedulingError
 
 SCHEDULING_PARAMETERS = ('realtime_priority', 'cpu_affinity')
-
-
-def scheduling_declarations() -> list[tuple]:
-    """(name, default, descriptor) of the two parameters, as the nodes declare theirs."""
-    return [
-        ('realtime_priority', 0, descriptor(
-            f'SCHED_FIFO priority of every thread of this node process, 1-{PRIORITY_RANGE[1]} (0: off, the '
-            'scheduling it started with); needs CAP_SYS_NICE or an rtprio limit (ulimit -r), else refused',
-            integer=PRIORITY_RANGE)),
-        ('cpu_affinity', Parameter.Type.INTEGER_ARRAY, descriptor(
-            'the cores this node process runs on (unset: the ones it started with); a core it may not use '
-            'is refused')),
-    ]
 
 
 def requested(values: dict) -> tuple[int, tuple[int, ...]]:

@@ -1,0 +1,113 @@
+"""The parameter schema is where every node parameter is defined: the nodes declare exactly its rows, a
+describe_parameters call (what `ros2 param describe` shows) returns them, and rclpy refuses what its ranges refuse."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import rclpy
+from rcl_interfaces.msg import ParameterType
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+
+from ddarm.ros.parameter_schema import NODES, SCHEMA, TYPES, joint_gains, parameters_of
+from ddarm_control.node import ControllerNode
+from ddarm_sim.node import PlantNode
+from ddarm_sim.robot_node import RobotNode
+from ddarm_tuner.node import TunerNode
+from graph_helpers import overrides
+
+TYPE_NUMBERS = {'bool': ParameterType.PARAMETER_BOOL, 'integer': ParameterType.PARAMETER_INTEGER,
+                'double': ParameterType.PARAMETER_DOUBLE, 'string': ParameterType.PARAMETER_STRING,
+                'integer[]': ParameterType.PARAMETER_INTEGER_ARRAY,
+                'double[]': ParameterType.PARAMETER_DOUBLE_ARRAY, 'string[]': ParameterType.PARAMETER_STRING_ARRAY}
+GAINS = {'kp': [100.0, 200.0, 300.0], 'kv': [10.0, 20.0, 30.0]}
+ROBOT = {'mjcf': str(Path(__file__).parent.parent / 'config' / 'robots' / 'panda' / 'panda.xml')}
+RCLPY_OWN = {'use_sim_time', 'start_type_description_service'}  # every rclpy node's
+
+
+def test_the_schema_loads_without_rclpy():
+    code = 'import sys, ddarm.ros.parameter_schema; print(any(m.startswith("rclpy") for m in sys.modules))'
+    assert subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          check=True).stdout.strip() == 'False'
+
+
+def test_every_row_is_well_formed_and_its_default_within_its_range():
+    for parameter in SCHEMA:
+        assert parameter.type in TYPES and parameter.nodes and set(parameter.nodes) <= set(NODES), parameter
+        assert parameter.description, parameter
+        if parameter.range is not None:
+            assert parameter.type in ('integer', 'double') and parameter.range[0] <= parameter.range[1]
+            assert parameter.range[0] <= parameter.default <= parameter.range[1], parameter
+        if parameter.default is None:
+            assert parameter.type.endswith('[]'), parameter
+    for node in NODES:
+        names = [parameter.name for parameter in parameters_of(node)]
+        assert len(names) == len(set(names)), node
+    with pytest.raises(ValueError, match='no node'):
+        parameters_of('planner')
+
+
+def _described(context, node, name, probe):
+    """What a client on the graph reads back from `node` through the parameter services: {name: descriptor}, and the
+    result of setting `probe` (name, value)."""
+    client_node = rclpy.create_node(f'{name}_describer', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    for each in (node, client_node):
+        executor.add_node(each)
+    client = AsyncParameterClient(client_node, name)
+
+    def wait(future):
+        while not future.done():
+            executor.spin_once(timeout_sec=0.05)
+        return future.result()
+
+    try:
+        while not client.services_are_ready():
+            executor.spin_once(timeout_sec=0.05)
+        names = wait(client.list_parameters()).result.names
+        descriptors = wait(client.describe_parameters(names)).descriptors
+        refused = wait(client.set_parameters([Parameter(probe[0], value=probe[1])])).results[0]
+        return dict(zip(names, descriptors)), refused
+    finally:
+        executor.shutdown()
+        client_node.destroy_node()
+
+
+@pytest.mark.parametrize('kind, name, make, probe', [
+    ('plant', 'plant', lambda context: PlantNode(context=context, parameter_overrides=overrides({'autostart': False})),
+     ('period', 2.0)),
+    ('robot', 'robot', lambda context: RobotNode(context=context,
+                                                 parameter_overrides=overrides({**ROBOT, 'autostart': False})),
+     ('position_noise', 11.0)),
+    ('controller', 'computed_torque', lambda context: ControllerNode('computed_torque', context=context,
+                                                                     parameter_overrides=overrides(GAINS)),
+     ('compute_delay_steps', 101)),
+    ('tuner', 'tuner', lambda context: TunerNode(context=context, parameter_overrides=overrides(GAINS)),
+     ('episode_timeout', 0.5)),
+])
+def test_a_client_describing_each_node_reads_the_schema(ros_context, kind, name, make, probe):
+    node = make(ros_context)
+    try:
+        described, refused = _described(ros_context, node, name, probe)
+    finally:
+        node.destroy_node()
+    expected = {parameter.name: parameter for parameter in parameters_of(kind)}
+    if kind == 'controller':  # the ddarm arm's joints, declared at configure
+        expected.update({parameter.name: parameter for joint in ('joint1', 'joint2', 'joint3')
+                         for parameter in joint_gains(joint)})
+    assert set(described) - RCLPY_OWN == set(expected)
+    for parameter_name, parameter in expected.items():
+        descriptor = described[parameter_name]
+        assert descriptor.type == TYPE_NUMBERS[parameter.type], parameter_name
+        assert descriptor.description == parameter.description and descriptor.read_only == parameter.read_only
+        ranges = descriptor.floating_point_range or descriptor.integer_range
+        if parameter.range is None:
+            assert not ranges, parameter_name
+        else:
+            assert (ranges[0].from_value, ranges[0].to_value) == parameter.range, parameter_name
+    # rclpy itself refuses a value out of the schema's range.
+    low, high = expected[probe[0]].range
+    assert not low <= probe[1] <= high and not refused.successful
