@@ -111,3 +111,54 @@ def test_a_client_describing_each_node_reads_the_schema(ros_context, kind, name,
     # rclpy itself refuses a value out of the schema's range.
     low, high = expected[probe[0]].range
     assert not low <= probe[1] <= high and not refused.successful
+
+
+CONFIG = Path(__file__).parent.parent / 'config'
+CONFIG_NODES = {'plant.yaml': ('plant', 'plant'), 'robot.yaml': ('robot', 'robot'),
+                'pd_gravity.yaml': ('pd_gravity', 'controller'),
+                'computed_torque.yaml': ('computed_torque', 'controller'), 'tuner.yaml': ('tuner', 'tuner')}
+PYTHON_TYPES = {'bool': (bool,), 'integer': (int,), 'double': (int, float), 'string': (str,)}
+
+
+def _fits(parameter, value) -> bool:
+    """Whether a YAML value is one the node takes for `parameter`: its type (an int for a double too), its range."""
+    if parameter.type.endswith('[]'):
+        kind = PYTHON_TYPES[parameter.type[:-2]]
+        return isinstance(value, list) and all(isinstance(item, kind) and not isinstance(item, bool) or
+                                               kind == (bool,) and isinstance(item, bool) for item in value)
+    kind = PYTHON_TYPES[parameter.type]
+    if isinstance(value, bool) != (kind == (bool,)) or not isinstance(value, kind):
+        return False
+    return parameter.range is None or parameter.range[0] <= value <= parameter.range[1]
+
+
+def _flat(values: dict, prefix: str = '') -> dict:
+    """A parameter file's nested keys as ROS 2 flattens them: gains: {joint1: {p: …}} is gains.joint1.p."""
+    flat = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
+
+
+@pytest.mark.parametrize('file', sorted(CONFIG_NODES))
+def test_every_parameter_a_config_file_sets_or_shows_is_the_schemas_and_fits_it(file):
+    import re
+
+    import yaml
+
+    node_name, kind = CONFIG_NODES[file]
+    text = (CONFIG / file).read_text()
+    rows = {parameter.name: parameter for parameter in parameters_of(kind)}
+    given = _flat(yaml.safe_load(text)[node_name]['ros__parameters'])
+    for name, value in given.items():
+        joint = name.split('.')[1] if name.startswith('gains.') else None
+        parameter = rows.get(name) or (next((row for row in joint_gains(joint) if row.name == name), None)
+                                       if joint else None)
+        assert parameter is not None, f'{file} sets {name}, which the schema has not for the {kind} node'
+        assert _fits(parameter, value), f'{file}: {name}: {value!r} is not a {parameter.type} within {parameter.range}'
+    # The parameters a file shows commented out ("# name: value") are the node's too.
+    shown = re.findall(r'^\s*#\s*([a-z_]+):\s', text, flags=re.MULTILINE)
+    assert shown and set(shown) <= set(rows), (file, sorted(set(shown) - set(rows)))
