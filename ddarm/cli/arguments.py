@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ddarm.control.laws import CONTROLLERS
-from ddarm.episodes.spec import PERIOD_RANGE, EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
+from ddarm.episodes.spec import (EPISODE_DEFAULTS, PERIOD_RANGE, EpisodeError, EpisodeSpec, arm_joints,
+                                 gains_from_omega)
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import DEFAULT_SUBSTEPS
 
@@ -84,19 +85,21 @@ def add_episode_arguments(parser: argparse.ArgumentParser, gains: bool = True) -
     parser.add_argument('--duration', type=finite, metavar='T',
                         help="T in s (default: the motion's; the paper's is 1); a bang-bang motion is stretched to "
                              "T, waypoints are held after their last point")
-    parser.add_argument('--period', type=finite, default=0.01, metavar='DT',
+    parser.add_argument('--period', type=finite, default=EPISODE_DEFAULTS['period'], metavar='DT',
                         help=f'sampling period Δ in s, within [{PERIOD_RANGE[0]:g}, {PERIOD_RANGE[1]:g}] '
-                             '(default 0.01)')
+                             f"(default {EPISODE_DEFAULTS['period']:g})")
     if gains:
         choice = parser.add_mutually_exclusive_group(required=True)
         choice.add_argument('--omega', type=finite, metavar='W',
                             help='gains from the ω rule of section 2 (PD + gravity: m_ii at q_f)')
         choice.add_argument('--kp', type=finite, nargs='+', metavar='K', help='K_p diagonal, one per joint')
         parser.add_argument('--kv', type=finite, nargs='+', metavar='V', help='K_v diagonal, with --kp')
-    parser.add_argument('--delay', type=int, default=1, metavar='D',
-                        help='compute delay in samples (default 1; the paper uses 0 for PD + gravity)')
-    parser.add_argument('--tau', type=finite, default=0.0,
-                        help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) (default 0)')
+    parser.add_argument('--delay', type=int, default=EPISODE_DEFAULTS['delay'], metavar='D',
+                        help=f"compute delay in samples (default {EPISODE_DEFAULTS['delay']}; the paper uses 0 for "
+                             'PD + gravity)')
+    parser.add_argument('--tau', type=finite, default=EPISODE_DEFAULTS['tau'],
+                        help='initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ) '
+                             f"(default {EPISODE_DEFAULTS['tau']:g})")
     add_torque_limit_arguments(parser, "the plant URDF's <limit effort> of each joint")
     parser.add_argument('--external-torque', type=finite, nargs='+', metavar='PZ',
                         help='constant external joint torques P^z in N m')

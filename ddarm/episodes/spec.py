@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, fields
 from functools import lru_cache
 
 import numpy as np
@@ -116,6 +116,11 @@ class EpisodeSpec:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+# The episode's defaults, by field: what the CLI, campaign files, controller YAMLs and the nodes' parameters
+# (ddarm.ros.parameter_schema) default to.
+EPISODE_DEFAULTS = {field.name: field.default for field in fields(EpisodeSpec) if field.default is not MISSING}
 
 
 def _is_number(value) -> bool:

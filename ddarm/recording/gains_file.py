@@ -15,14 +15,14 @@ from pathlib import Path
 
 from ddarm.control.laws import CONTROLLERS, MAX_DELAY
 from ddarm.datafiles import PARAMETERS_KEY, is_missing, parameter_document, unreachable
-from ddarm.episodes.spec import EpisodeSpec, read_motion_file
+from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec, read_motion_file
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, movable_joints
 from ddarm.physics.plant import NODE_PERIOD_RANGE
 
-# The controller node's defaults for what a file leaves out (ddarm_control/node.py declares them).
-DEFAULT_DELAY, DEFAULT_PERIOD = 1, 0.01
+# The controller node's defaults for what a file leaves out (the episode's, as the node's are).
+DEFAULT_DELAY, DEFAULT_PERIOD = EPISODE_DEFAULTS['delay'], EPISODE_DEFAULTS['period']
 # The node's bound on `duration`, s (0: the motion file's own).
 MAX_NODE_DURATION = 3600.0
 # Parameters that make the node's law another than the gains' in the file: validating the gains alone would be

@@ -16,8 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from ddarm.control.laws import CONTROLLERS, MAX_DELAY
+from ddarm.episodes.spec import EPISODE_DEFAULTS as EPISODE
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
-from ddarm.physics.plant import DEFAULT_SUBSTEPS, MAX_SUBSTEPS, NODE_PERIOD_RANGE
+from ddarm.physics.plant import MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.realtime import PRIORITY_RANGE, SPIN_MARGIN_RANGE
 from ddarm.recording.gains_file import MAX_NODE_DURATION
 from ddarm.recording.runs import DEFAULT_ROOT
@@ -74,8 +75,8 @@ PLANT = (
     _p('mjcf_joints', 'string[]', None, "the MJCF's name of each joint of the arm, in its order (unset: the same "
        'names)', 'plant', read_only=True),
     _p('mode', 'string', 'lockstep', 'lockstep (deterministic) or realtime (wall clock at 1/period)', 'plant'),
-    _p('period', 'double', 0.01, 'sampling period Δ in s', 'plant', 's', NODE_PERIOD_RANGE),
-    _p('substeps', 'integer', DEFAULT_SUBSTEPS, 'RK4 steps per sampling period', 'plant', range_=(1, MAX_SUBSTEPS)),
+    _p('period', 'double', EPISODE['period'], 'sampling period Δ in s', 'plant', 's', NODE_PERIOD_RANGE),
+    _p('substeps', 'integer', EPISODE['substeps'], 'RK4 steps per sampling period', 'plant', range_=(1, MAX_SUBSTEPS)),
     _p('command_timeout', 'double', 5.0, 'lockstep: wall seconds to wait for a command', 'plant', 's',
        (1e-3, 3600.0)),
     _p('required_subscribers', 'integer', 1, 'joint_states subscribers to wait for before sample 0', 'plant',
@@ -91,12 +92,13 @@ PLANT = (
     _p('external_torque', 'double[]', None, 'constant external joint torques P^z in N m (unset: none)', 'plant',
        'N m'),
     _p('mass_scale', 'double[]', None, 'plant link mass / model link mass per link (unset: 1)', 'plant'),
-    _p('trajectory', 'integer', 1, f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} (of '
+    _p('trajectory', 'integer', EPISODE['trajectory'],
+       f'start at q^d(0) of the paper trajectory {list(PAPER_TRAJECTORIES)} (of '
        '`motion`, when set, whatever the number); 0: initial_position/velocity', 'plant',
        range_=(0, max(PAPER_TRAJECTORIES))),
     _p('duration', 'double', 0.0, 'T of the programmed motion in s (for the start state; a bang-bang motion is '
        'stretched to it); 0 = the motion\'s own (the paper\'s: 1 s)', 'plant', 's', (0.0, MAX_NODE_DURATION)),
-    _p('tau', 'double', 0.0, 'initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s', 'plant', 's',
+    _p('tau', 'double', EPISODE['tau'], 'initial velocity disturbance (3.1): q̇(0) = -q̇^d(τ), in s', 'plant', 's',
        (0.0, 3600.0)),
     _p('initial_position', 'double[]', None, 'start position when trajectory = 0', 'plant', 'rad or m'),
     _p('initial_velocity', 'double[]', None, 'start velocity when trajectory = 0', 'plant', 'rad/s or m/s'),
@@ -154,8 +156,10 @@ CONTROLLER = (
     _p('kv', 'double[]', None, 'K_v diagonal, one positive value per joint (or gains.<joint>.d)', 'controller'),
     _p('omega', 'double', 0.0, 'ω rule of section 2 when > 0 (overrides kp, kv and gains)', 'controller', 'rad/s',
        (0.0, 1e4)),
-    _p('compute_delay_steps', 'integer', 1, 'compute delay d in samples', 'controller', 'samples', (0, MAX_DELAY)),
-    _p('period', 'double', 0.01, 'sampling period Δ in s (state: to read sample indices from stamps; timer: the '
+    _p('compute_delay_steps', 'integer', EPISODE['delay'],
+       'compute delay d in samples', 'controller', 'samples', (0, MAX_DELAY)),
+    _p('period', 'double', EPISODE['period'],
+       'sampling period Δ in s (state: to read sample indices from stamps; timer: the '
        'timer period, fixed while the node runs)', 'controller', 's', NODE_PERIOD_RANGE),
     _p('max_sample_gap', 'integer', 100, 'states more than this many samples ahead of the expected one are refused '
        '(sampling state)', 'controller', 'samples', (1, 1_000_000)),
@@ -208,13 +212,15 @@ TUNER = (
        'tuner', read_only=True),
     _p('motion', 'string', '', 'a motion file: the controlled joints, locked joints and q^d ("" = the paper '
        'trajectory of `trajectory`); plant and controller must run it', 'tuner', read_only=True),
-    _p('trajectory', 'integer', 1, f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)} (unless motion)',
+    _p('trajectory', 'integer', EPISODE['trajectory'],
+       f'the paper trajectory, one of {list(PAPER_TRAJECTORIES)} (unless motion)',
        'tuner', range_=(min(PAPER_TRAJECTORIES), max(PAPER_TRAJECTORIES))),
     _p('duration', 'double', 0.0, 'T in s (0: the motion\'s own; a bang-bang motion is stretched to T)', 'tuner',
        's', (0.0, MAX_NODE_DURATION)),
-    _p('period', 'double', 0.01, 'Δ in s', 'tuner', 's', NODE_PERIOD_RANGE),
-    _p('delay', 'integer', 1, 'compute delay d in samples (unless gains_file)', 'tuner', 'samples', (0, MAX_DELAY)),
-    _p('substeps', 'integer', DEFAULT_SUBSTEPS, 'plant RK4 steps per period', 'tuner', range_=(1, MAX_SUBSTEPS)),
+    _p('period', 'double', EPISODE['period'], 'Δ in s', 'tuner', 's', NODE_PERIOD_RANGE),
+    _p('delay', 'integer', EPISODE['delay'],
+       'compute delay d in samples (unless gains_file)', 'tuner', 'samples', (0, MAX_DELAY)),
+    _p('substeps', 'integer', EPISODE['substeps'], 'plant RK4 steps per period', 'tuner', range_=(1, MAX_SUBSTEPS)),
     _p('taus', 'double[]', [0.0], 'initial velocity disturbances τ (3.1), one episode each, s', 'tuner', 's'),
     _p('torque_limits', 'string[]', ['none'], "'none', 'paper' (2 x max nominal) and/or 'urdf' (its <limit effort>), "
        'each with every τ', 'tuner'),

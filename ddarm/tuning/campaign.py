@@ -29,12 +29,11 @@ from matplotlib.figure import Figure
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
-from ddarm.episodes.spec import EpisodeSpec, arm_joints, check_episode
+from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
 from ddarm.datafiles import DataFileError, read_data_file, regular_file_problem
 from ddarm.motion.files import DataLoader, shown
 from ddarm.motion.programmed import PAPER_TRAJECTORIES
-from ddarm.physics.plant import DEFAULT_SUBSTEPS
 from ddarm.recording.runs import RunFolder, write_new_file
 from ddarm.reporting.text import figure_text, markdown_paragraph, markdown_text
 from ddarm.tuning.jobs import Job
@@ -378,10 +377,11 @@ def _job(reader: _Reader, where: str, name: str | None, arm: dict, motion: dict,
     plant = {key: value for key, value in scenario.items() if key != 'name'}
     try:
         template = EpisodeSpec(
-            controller=law, kp=(1.0,), kv=(1.0,), trajectory=motion.get('trajectory', 1),
-            duration=motion.get('duration'), period=options.get('period', 0.01), delay=options.get('delay', 1),
-            torque_limit=options.get('torque_limit', 'none'), substeps=options.get('substeps', DEFAULT_SUBSTEPS),
-            urdf=arm.get('urdf'), model_urdf=arm.get('model_urdf'), motion=motion.get('file'),
+            controller=law, kp=(1.0,), kv=(1.0,), trajectory=motion.get('trajectory', EPISODE_DEFAULTS['trajectory']),
+            duration=motion.get('duration'), urdf=arm.get('urdf'), model_urdf=arm.get('model_urdf'),
+            motion=motion.get('file'),
+            **{key: options.get(key, EPISODE_DEFAULTS[key]) for key in ('period', 'delay', 'torque_limit',
+                                                                          'substeps')},
             **{key: value for key, value in plant.items() if key != 'mass_scale'})
         dof = len(arm_joints(template)[0])
         mass_scale = plant.get('mass_scale')
