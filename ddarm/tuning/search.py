@@ -31,7 +31,7 @@ from ddarm.errors import DdarmError
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, arm_joints, gains_from_omega
 from ddarm.interrupts import check_stop
-from ddarm.tuning.methods import METHODS
+from ddarm.tuning.methods import DEFAULT_METHOD, METHODS
 from ddarm.tuning.robust import AGGREGATES, scenario_batches
 
 # A diverged episode is scored on the samples before its divergence, which can be few and
@@ -395,7 +395,7 @@ def _start_points(start_kp, start_kv) -> np.ndarray:
 
 
 def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budget: int,
-                 method: str = 'nelder-mead', seed: int = 0, step: float = 0.5,
+                 method: str = DEFAULT_METHOD, seed: int = 0, step: float = 0.5,
                  popsize: int | None = None, progress=None, scenarios: tuple[EpisodeSpec, ...] | None = None,
                  aggregate: str = 'worst') -> SearchResult:
     """Minimise the index I1 (2.5), I2 or I (3.2) of `template`'s episode over its diagonal gains (spec §9),
@@ -408,10 +408,9 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
         start_kp, start_kv: start gains, shape (S, n) each (e.g. omega_starts).
         budget: the most episodes evaluated: points x scenarios, a Nelder-Mead point outside GAIN_RANGE
             (not simulated) counted as if it were; the search stops before a batch that would exceed it.
-        method: 'global' (independent runs of differential evolution, Nelder-Mead and CMA-ES until its
-            certificate holds; see the module and _global),
-            'nelder-mead' (one simplex per start, advanced together) or 'cma' (CMA-ES from the
-            best start).
+        method: 'global' (the default, DEFAULT_METHOD: independent runs of differential evolution, Nelder-Mead and
+            CMA-ES until its certificate holds; see the module and _global), 'nelder-mead' (one simplex per start,
+            advanced together) or 'cma' (CMA-ES from the best start).
         seed: the random draws of CMA-ES and of DE; Nelder-Mead is deterministic.
         step: the initial spread in log gain: Nelder-Mead's simplex edge, CMA-ES's σ0 (not used by
             'global': its Nelder-Mead takes START_STEP, its CMA-ES runs LOCAL_SIGMA and WIDE_SIGMA).
@@ -444,7 +443,7 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
 
 
 def check_search(template: EpisodeSpec, *, index: str, start_kp, start_kv, budget: int,
-                 method: str = 'nelder-mead', step: float = 0.5, popsize: int | None = None,
+                 method: str = DEFAULT_METHOD, step: float = 0.5, popsize: int | None = None,
                  scenarios: tuple[EpisodeSpec, ...] | None = None, aggregate: str = 'worst',
                  seed: int = 0) -> np.ndarray:
     """Refuse, with SearchError naming the argument, a search that search_gains (same arguments) cannot run.
