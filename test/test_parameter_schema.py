@@ -162,3 +162,19 @@ def test_every_parameter_a_config_file_sets_or_shows_is_the_schemas_and_fits_it(
     # The parameters a file shows commented out ("# name: value") are the node's too.
     shown = re.findall(r'^\s*#\s*([a-z_]+):\s', text, flags=re.MULTILINE)
     assert shown and set(shown) <= set(rows), (file, sorted(set(shown) - set(rows)))
+
+
+def test_the_driver_sets_through_the_services_every_parameter_of_an_episode_but_the_schemas_read_only_ones():
+    from ddarm.episodes.spec import EpisodeSpec, check_episode
+    from ddarm.ros.node_parameters import node_parameters, service_parameters
+    from ddarm.ros.parameter_schema import read_only
+
+    arm = Path(__file__).parent.parent / 'config' / 'arms' / 'ur5'
+    spec = EpisodeSpec(controller='pd_gravity', kp=(100.0,) * 6, kv=(10.0,) * 6, urdf=str(arm / 'ur5.urdf'),
+                       motion=str(arm / 'ur5-motion.yaml'), viscous_friction=(0.1,) * 6)
+    parameters = node_parameters(spec, check_episode(spec))
+    for node, kind in (('plant', 'plant'), ('pd_gravity', 'controller')):
+        given = parameters[node]['ros__parameters']
+        assert {'urdf', 'motion'} <= set(given) and {'urdf', 'motion'} <= read_only(kind)
+        sent = {parameter.name for parameter in service_parameters(given, (), kind)}
+        assert sent == set(given) - read_only(kind)

@@ -575,9 +575,9 @@ class GraphDriver(Node):
         self._check_arm(executor, self.plant_node, arms['plant'], deadline, watching)
         self._check_arm(executor, spec.controller, arms[spec.controller], deadline, watching)
         parameters = node_parameters(spec, plan, mode, scheduling)
-        plant_parameters = service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL)
+        plant_parameters = service_parameters(parameters['plant']['ros__parameters'], PLANT_OPTIONAL, 'plant')
         controller_parameters = service_parameters(parameters[spec.controller]['ros__parameters'],
-                                                    CONTROLLER_OPTIONAL)
+                                                    CONTROLLER_OPTIONAL, 'controller')
         self._configure(executor, self.plant_node, plant_parameters, deadline, watching)
         self._configure(executor, spec.controller, controller_parameters, deadline, watching)
         self.period, self.bag, self.joints = spec.period, bag, list(plan.joint_names)

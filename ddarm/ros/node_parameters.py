@@ -10,16 +10,15 @@ from rclpy.parameter import Parameter
 
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
 from ddarm.physics.arm import same_urdf
+from ddarm.ros.parameter_schema import read_only
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
 COMMAND_TIMEOUT = 10.0
 # The plant starts an episode once this many nodes listen to it: the controller and the driver.
 GRAPH_SUBSCRIBERS = 2
-# What a node is built from when it starts (its arm and the joints it controls): given at start, never set
-# through the parameter services. '' is the default: the paper's arm, and its joints (or every movable joint).
+# What the plant and a controller are built from when they start (the arm and the joints controlled), which the
+# driver checks before each episode. '' is the default: the paper's arm, and its joints (or every movable joint).
 READ_ONLY = ('urdf', 'motion')
-# The plant's too: the robot it steps instead of ddarm's plant ('': none) and the robot's name of each joint.
-ROBOT_READ_ONLY = ('mjcf', 'mjcf_joints')
 
 
 @dataclass(frozen=True)
@@ -97,10 +96,11 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
     return {'plant': {'ros__parameters': plant}, spec.controller: {'ros__parameters': controller}}
 
 
-def service_parameters(values: dict, clear: tuple[str, ...]) -> list[Parameter]:
-    """Parameters to set at run time: read-only ones left out, unset per-joint options cleared."""
-    parameters = [Parameter(name, value=value) for name, value in values.items()
-                  if name not in READ_ONLY + ROBOT_READ_ONLY]
+def service_parameters(values: dict, clear: tuple[str, ...], node: str) -> list[Parameter]:
+    """Parameters to set at run time on a `node` ('plant' or 'controller'): its read-only ones (the schema's) left
+    out, unset per-joint options cleared."""
+    fixed = read_only(node)
+    parameters = [Parameter(name, value=value) for name, value in values.items() if name not in fixed]
     parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
     return parameters
 

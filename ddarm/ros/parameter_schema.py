@@ -245,6 +245,11 @@ def parameters_of(node: str) -> tuple[NodeParameter, ...]:
     return tuple(parameter for parameter in own if node in parameter.nodes)
 
 
+def read_only(node: str) -> frozenset[str]:
+    """The parameters `node` takes only at start: never set through its parameter services."""
+    return frozenset(parameter.name for parameter in parameters_of(node) if parameter.read_only)
+
+
 def joint_gains(joint: str) -> tuple[NodeParameter, NodeParameter]:
     """gains.<joint>.p (K_p) and gains.<joint>.d (K_v) of one controlled joint."""
     return tuple(replace(parameter, name=parameter.name.format(joint=joint),
