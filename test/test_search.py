@@ -156,7 +156,7 @@ def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to
                for call in range(search.STALL_CALLS, len(bests) - 1))
 
 
-def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_points_outside_the_agreement():
+def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_point_outside_the_agreement():
     template = example_spec('scara', 'pd_gravity')  # 4 joints: 8 gains
     kp, kv = omega_starts(template, [5.0, 10.0])
     budget = 6000
@@ -172,14 +172,14 @@ def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_points_outside_th
 
 
 @pytest.mark.parametrize('polish_episodes, line', [
-    (640, 'Then a final polish of the best points (not one of the runs above): best I 0.98 in 640 episodes.'),
-    (0, 'The runs left no budget for a final polish of the best points.')])
+    (640, 'Then a final polish of the best point (not one of the runs above): best I 0.98 in 640 episodes.'),
+    (0, 'The runs left no budget for a final polish of the best point.')])
 def test_the_report_names_the_final_polish_beside_the_runs_it_is_not_one_of(polish_episodes, line):
     from ddarm.tuning.report import certificate_section
 
     runs = tuple(search.Restart(f'run {number}', 1, 100, value, ('converged',))
                  for number, value in enumerate([1.0, 1.001, 1.2]))
-    polish = search.Restart('final CMA-ES polish of the best points', 16, polish_episodes,
+    polish = search.Restart('final CMA-ES polish of the best point', 16, polish_episodes,
                             0.98 if polish_episodes else np.inf, ('converged',))
     certificate = search.Certificate(runs, 2, 1000, 300 + polish_episodes, final_polish=polish)
     lines = certificate_section(certificate.to_dict(), 'I')

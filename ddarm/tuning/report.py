@@ -127,8 +127,8 @@ def certificate_section(certificate: dict, index: str) -> list[str]:
               for run in certificate['runs']]
     polish = certificate.get('final_polish')  # absent from certificates written before it
     if polish is not None:
-        lines += ['', 'The runs left no budget for a final polish of the best points.' if not polish['episodes'] else
-                  f"Then a final polish of the best points (not one of the runs above): best {index} "
+        lines += ['', 'The runs left no budget for a final polish of the best point.' if not polish['episodes'] else
+                  f"Then a final polish of the best point (not one of the runs above): best {index} "
                   f"{_index_cell(polish['index'])} in {polish['episodes']} episodes."]
     lines += ['', _row(['basin', f'best {index}', 'runs ending in it']), _row(['---'] * 3)]
     lines += [_row([str(number + 1), _index_cell(basin['index']), str(basin['runs'])])
