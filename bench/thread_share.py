@@ -10,25 +10,17 @@ machine's load. The engine's MIN_MEMBERS_PER_THREAD and MIN_MEMBERS_PER_THREAD_U
 
 from __future__ import annotations
 
-import argparse
 import time
 
 from ddarm.episodes import engine
-from ddarm.episodes.bench import MANY_JOINT_ARM, perturbed_gains, reference_case
-from ddarm.episodes.engine import BatchRunner
-from ddarm.physics.arm import config_file
+from ddarm.episodes.bench import perturbed_gains
+
+import small_batch_case
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--sizes', type=int, nargs='+', default=[6, 8, 12, 16, 24, 32, 48, 64])
-    parser.add_argument('--rounds', type=int, default=9)
-    parser.add_argument('--panda', action='store_true', help='the Panda (7 joints) instead of the paper\'s arm')
-    options = parser.parse_args()
-    template = reference_case(*(str(config_file(*parts)) for parts in MANY_JOINT_ARM)) if options.panda else (
-        reference_case())
-    runner = BatchRunner(template)
-    runner(*perturbed_gains(template, 1, seed=1), threads=1)  # compiles the arm's dynamics, or loads them
+    options = small_batch_case.options(__doc__.splitlines()[0], [6, 8, 12, 16, 24, 32, 48, 64], 9)
+    template, runner = small_batch_case.compiled_runner(options.panda)
     engine.MIN_MEMBERS_PER_THREAD = engine.MIN_MEMBERS_PER_THREAD_UNVECTORISED = 1
     print(f"{'B':>4}  {'1 thread ms':>11}  {'2 threads ms':>12}  {'ratio':>6}")
     for size in options.sizes:

@@ -2,11 +2,14 @@
 spinning an executor until a condition holds, and calling services (lifecycle ones too) from a test."""
 
 import time
+from contextlib import contextmanager
 
+import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
@@ -90,3 +93,27 @@ def run_in_process(context, spec, **options):
         return graph.run()
     finally:
         graph.close()
+
+
+@contextmanager
+def parameter_client(context, node, name: str):
+    """A client of `node`'s parameter services (as `ros2 param` is), once they are up, and wait(future): spins the
+    node and the client until the future is done and returns its result."""
+    client_node = rclpy.create_node(f'{name}_parameter_client', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    for each in (node, client_node):
+        executor.add_node(each)
+    client = AsyncParameterClient(client_node, name)
+
+    def wait(future):
+        while not future.done():
+            executor.spin_once(timeout_sec=0.05)
+        return future.result()
+
+    try:
+        while not client.services_are_ready():
+            executor.spin_once(timeout_sec=0.05)
+        yield client, wait
+    finally:
+        executor.shutdown()
+        client_node.destroy_node()

@@ -14,14 +14,13 @@ import yaml
 from rclpy.exceptions import InvalidParameterValueException, ParameterNotDeclaredException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
 
 from ddarm.control.laws import GainError
 from ddarm.recording.runs import controller_yaml
 from ddarm.ros.interface import flat_parameters, given_gains
 from ddarm_control.node import ControllerNode
-from graph_helpers import overrides
+from graph_helpers import overrides, parameter_client
 
 ROOT = Path(__file__).resolve().parent.parent
 DDARM_JOINTS = ['joint1', 'joint2', 'joint3']
@@ -201,20 +200,7 @@ def keyed_node(ros_context):
 
 def test_keyed_gains_set_at_run_time_through_the_service_atomically_and_validated(ros_context, keyed_node):
     node = keyed_node
-    client_node = rclpy.create_node('gains_client', context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    for each in (node, client_node):
-        executor.add_node(each)
-    client = AsyncParameterClient(client_node, 'computed_torque')
-
-    def wait(future):
-        while not future.done():
-            executor.spin_once(timeout_sec=0.05)
-        return future.result()
-
-    try:
-        while not client.services_are_ready():
-            executor.spin_once(timeout_sec=0.05)
+    with parameter_client(ros_context, node, 'computed_torque') as (client, wait):
         result = wait(client.set_parameters_atomically(
             [Parameter('gains.joint1.p', value=110.0), Parameter('gains.joint3.d', value=33.0)])).result
         assert result.successful, result.reason
@@ -231,9 +217,6 @@ def test_keyed_gains_set_at_run_time_through_the_service_atomically_and_validate
         assert not result.successful and "gains for joint 'elbow'" in result.reason
         assert node.controller.law.kp.tolist() == [110.0, 200.0, 300.0]
         assert node.controller.law.kv.tolist() == [10.0, 20.0, 33.0]
-    finally:
-        executor.shutdown()
-        client_node.destroy_node()
 
 
 def test_a_change_in_the_other_form_converts_the_gains_to_it(keyed_node):

@@ -6,18 +6,16 @@ import sys
 from pathlib import Path
 
 import pytest
-import rclpy
 from rcl_interfaces.msg import ParameterType
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 
+from ddarm.ros.interface import flat_parameters
 from ddarm.ros.parameter_schema import NODES, SCHEMA, TYPES, joint_gains, parameters_of
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
 from ddarm_sim.robot_node import RobotNode
 from ddarm_tuner.node import TunerNode
-from graph_helpers import overrides
+from graph_helpers import overrides, parameter_client
 
 TYPE_NUMBERS = {'bool': ParameterType.PARAMETER_BOOL, 'integer': ParameterType.PARAMETER_INTEGER,
                 'double': ParameterType.PARAMETER_DOUBLE, 'string': ParameterType.PARAMETER_STRING,
@@ -53,27 +51,11 @@ def test_every_row_is_well_formed_and_its_default_within_its_range():
 def _described(context, node, name, probe):
     """What a client on the graph reads back from `node` through the parameter services: {name: descriptor}, and the
     result of setting `probe` (name, value)."""
-    client_node = rclpy.create_node(f'{name}_describer', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    for each in (node, client_node):
-        executor.add_node(each)
-    client = AsyncParameterClient(client_node, name)
-
-    def wait(future):
-        while not future.done():
-            executor.spin_once(timeout_sec=0.05)
-        return future.result()
-
-    try:
-        while not client.services_are_ready():
-            executor.spin_once(timeout_sec=0.05)
+    with parameter_client(context, node, name) as (client, wait):
         names = wait(client.list_parameters()).result.names
         descriptors = wait(client.describe_parameters(names)).descriptors
         refused = wait(client.set_parameters([Parameter(probe[0], value=probe[1])])).results[0]
-        return dict(zip(names, descriptors)), refused
-    finally:
-        executor.shutdown()
-        client_node.destroy_node()
+    return dict(zip(names, descriptors)), refused
 
 
 @pytest.mark.parametrize('kind, name, make, probe', [
@@ -132,17 +114,6 @@ def _fits(parameter, value) -> bool:
     return parameter.range is None or parameter.range[0] <= value <= parameter.range[1]
 
 
-def _flat(values: dict, prefix: str = '') -> dict:
-    """A parameter file's nested keys as ROS 2 flattens them: gains: {joint1: {p: …}} is gains.joint1.p."""
-    flat = {}
-    for key, value in values.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f'{prefix}{key}.'))
-        else:
-            flat[f'{prefix}{key}'] = value
-    return flat
-
-
 @pytest.mark.parametrize('file', sorted(CONFIG_NODES))
 def test_every_parameter_a_config_file_sets_or_shows_is_the_schemas_and_fits_it(file):
     import re
@@ -152,7 +123,7 @@ def test_every_parameter_a_config_file_sets_or_shows_is_the_schemas_and_fits_it(
     node_name, kind = CONFIG_NODES[file]
     text = (CONFIG / file).read_text()
     rows = {parameter.name: parameter for parameter in parameters_of(kind)}
-    given = _flat(yaml.safe_load(text)[node_name]['ros__parameters'])
+    given = flat_parameters(yaml.safe_load(text)[node_name]['ros__parameters'])
     for name, value in given.items():
         joint = name.split('.')[1] if name.startswith('gains.') else None
         parameter = rows.get(name) or (next((row for row in joint_gains(joint) if row.name == name), None)
