@@ -146,8 +146,8 @@ class _Bowl:
 
 def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to_cmas_end():
     stalled, full = _Bowl(100_000), _Bowl(100_000)
-    best = search._polish(stalled, 0, np.random.default_rng(0), 0.1, search.POLISH_STALL)
-    search._polish(full, 0, np.random.default_rng(0), 0.1)
+    best, stopped_by = search._polish(stalled, 0, np.random.default_rng(0), 0.1, search.POLISH_STALL)
+    assert stopped_by == ('stalled',) and search._polish(full, 0, np.random.default_rng(0), 0.1)[1] == ('converged',)
     assert search.STALL_CALLS < stalled.calls < full.calls and full.remaining > 0
     # It stopped at the first call whose best had improved by less than the stall over the last STALL_CALLS calls.
     bests = np.minimum.accumulate([values.min() for values in stalled.values[1:]])

@@ -232,8 +232,9 @@ TUNER = (
        'before each episode', 'tuner', 's', (0.1, 3600.0)),
 )
 
-# In each node's order of declaration.
-SCHEMA = PLANT + SCHEDULING + ROBOT + CONTROLLER + JOINT_GAINS + TUNER
+# Every row: those a node declares at construction, in its order (the scheduling rows after the plant's and the
+# controllers' own), then the per-joint gains' templates.
+SCHEMA = PLANT + ROBOT + CONTROLLER + SCHEDULING + TUNER + JOINT_GAINS
 
 
 def parameters_of(node: str) -> tuple[NodeParameter, ...]:
@@ -241,8 +242,7 @@ def parameters_of(node: str) -> tuple[NodeParameter, ...]:
     joint_gains'."""
     if node not in NODES:
         raise ValueError(f'no node {node!r}: one of {NODES}')
-    own = {'plant': PLANT + SCHEDULING, 'robot': ROBOT, 'controller': CONTROLLER + SCHEDULING, 'tuner': TUNER}[node]
-    return tuple(parameter for parameter in own if node in parameter.nodes)
+    return tuple(parameter for parameter in SCHEMA if node in parameter.nodes and parameter not in JOINT_GAINS)
 
 
 def read_only(node: str) -> frozenset[str]:

@@ -75,14 +75,14 @@ LOCAL_POPSIZE = 16
 # On searches of STALL_GAINS gains or more, every polish but the last also stops once its best improved by less than
 # POLISH_STALL (relative) over its last STALL_CALLS batch calls, and the search ends with a final polish of the best
 # point to cma's own end (from the best point only: from the 4 best it cost a converged SCARA search 23,632 more
-# episodes, 46 %, from the best alone 5,424, the same minimum). There a polish to cma's end takes most of the budget for little: on the Z1 (12 gains) the
-# first DE run's polish took 133,760 of 200,000 episodes to go from 633.1 to 629.5, while a DE run over the wide box
-# then found 536.3 in 14,352; on the Panda (14 gains) 63,200 episodes went from 0.7759 to 0.7744, 0.1 % of it after
-# the first 576. With the stall the Z1 came within 1 % of its best known, the Panda, the UR5 and the SCARA's own case
-# as close or closer. On the paper's arm (6 gains) a polish that creeps on is often how the search reaches its
-# deepest basin (shared case 1: 0.3726 with it, 0.3855 with the stall; `ddarm reproduce`'s minima up to 0.08 %
-# higher), and the budget it would free went to runs that certified a shallower basin (shared case 4): it keeps the
-# polish to cma's end.
+# episodes, 46 %, from the best alone 5,424, the same minimum). There a polish to cma's end takes most of the budget for
+# little: on the Z1 (12 gains) the first DE run's polish took 133,760 of 200,000 episodes to go from 633.1 to 629.5,
+# while a DE run over the wide box then found 536.3 in 14,352; on the Panda (14 gains) 63,200 episodes went from 0.7759
+# to 0.7744, 0.1 % of it after the first 576. With the stall the Z1 came within 1 % of its best known, the Panda, the
+# UR5 and the SCARA's own case as close or closer. On the paper's arm (6 gains) a polish that creeps on is often how the
+# search reaches its deepest basin (shared case 1: 0.3726 with it, 0.3855 with the stall; `ddarm reproduce`'s minima up
+# to 0.08 % higher), and the budget it would free went to runs that certified a shallower basin (shared case 4): it
+# keeps the polish to cma's end.
 STALL_GAINS = 8
 POLISH_STALL = 1e-4
 STALL_CALLS = 20
@@ -134,7 +134,7 @@ class Restart:
     episodes: int
     index: float  # its best index, +inf if all its episodes diverged
     # Nelder-Mead's ('converged',) or ('budget',); DE's ('tol',) when its population agreed, else ('generations',);
-    # cma's own stop criteria, or ('budget',).
+    # cma's own stop criteria, or ('budget',); a polish's ('converged',), ('budget',) or ('stalled',) (see _polish).
     stopped_by: tuple[str, ...]
 
 
@@ -208,18 +208,17 @@ class Certificate:
 
     def to_dict(self) -> dict:
         """The JSON of `certificate`."""
-        def finite(value):
-            return float(value) if np.isfinite(value) else None
+        def entry(run: Restart) -> dict:
+            return {'run': run.start, 'index': float(run.index) if np.isfinite(run.index) else None,
+                    'episodes': run.episodes}
         return {
             'converged': self.converged, 'settled': self.settled, 'summary': self.summary(),
-            'runs': [{'run': run.start, 'index': finite(run.index), 'episodes': run.episodes} for run in self.runs],
+            'runs': [entry(run) for run in self.runs],
             'runs_within_1_percent': self.within(SAME_BASIN), 'runs_within_0_5_percent': self.within(AGREEMENT),
             'required_runs': self.required_runs, 'global_runs': self.global_runs,
             'required_global_runs': MIN_GLOBAL_RUNS,
             'basins': [{'index': index, 'runs': count} for index, count in self.basins()],
-            'final_polish': None if self.final_polish is None else {
-                'run': self.final_polish.start, 'index': finite(self.final_polish.index),
-                'episodes': self.final_polish.episodes},
+            'final_polish': None if self.final_polish is None else entry(self.final_polish),
             'episodes': self.episodes, 'budget': self.budget,
         }
 
@@ -580,17 +579,17 @@ def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsiz
         lambda population: objective(population.T), list(zip(low, high)), vectorized=True, updating='deferred',
         popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
     best = min(_finite(evolution.fun),
-               _polish(objective, first_record if since is None else since, rng, stall=stall))
+               _polish(objective, first_record if since is None else since, rng, stall=stall)[0])
     stopped_by = ('tol',) if evolution.success else ('generations',)
     return Restart(name, members, objective.evaluations - spent, best, stopped_by), int(evolution.nit)
 
 
 def _polish(objective: _Objective, since: int, rng, sigma: float = LOCAL_SIGMA, stall: float | None = None,
-            finalists: int = FINALISTS) -> float:
+            finalists: int = FINALISTS) -> tuple[float, tuple[str, ...]]:
     """Local CMA-ES runs (σ0 = `sigma`, population LOCAL_POPSIZE) from the `finalists` best distinct points evaluated
     since batch `since`, their populations side by side in one batch call, until cma stops each or the budget ends
     them (the last first), or, given `stall`, once their best improved by less than that fraction over the last
-    STALL_CALLS calls; their best index."""
+    STALL_CALLS calls. Returns their best index and why they stopped: ('converged',), ('budget',) or ('stalled',)."""
     import cma  # see _cma
 
     points, energies = objective.history_points(since)
@@ -609,11 +608,11 @@ def _polish(objective: _Objective, since: int, rng, sigma: float = LOCAL_SIGMA, 
         bests.append(best)
         if (stall is not None and len(bests) > STALL_CALLS and np.isfinite(best)
                 and bests[-1 - STALL_CALLS] - best <= stall * abs(best)):
-            break
+            return best, ('stalled',)
         for run, population, run_values in zip(runs, populations, np.split(values, len(runs))):
             run.tell(population, run_values.tolist())
         runs = [run for run in runs if not run.stop()]
-    return best
+    return best, ('budget',) if objective.remaining < LOCAL_POPSIZE else ('converged',)
 
 
 def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str) -> Restart | None:
@@ -679,10 +678,11 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
                      _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
              for number in range(len(starts))]
     if len(taken):
-        spent, share = objective.evaluations, _Share(objective, int(POLISH_SHARE * objective.remaining))
-        best = _polish(share, phase_record, first_draws, POLISH_SIGMA, stall)
+        spent = objective.evaluations
+        best, stopped_by = _polish(_Share(objective, int(POLISH_SHARE * objective.remaining)), phase_record,
+                                   first_draws, POLISH_SIGMA, stall)
         runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, objective.evaluations - spent,
-                            best, ('budget',) if share.remaining < LOCAL_POPSIZE else ('converged',)))
+                            best, stopped_by))
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
     evolutions, wide = (0 if evolution is None else 1), 0  # the DE runs and wide CMA-ES runs done
     while True:
@@ -706,10 +706,9 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
         runs.append(run)
     if stall is not None:
         spent = objective.evaluations
-        best = _polish(objective, 0, first_draws, finalists=1)
+        best, stopped_by = _polish(objective, 0, first_draws, finalists=1)
         certificate = replace(certificate, episodes=objective.evaluations, final_polish=Restart(
-            'final CMA-ES polish of the best point', LOCAL_POPSIZE, objective.evaluations - spent, best,
-            ('budget',) if objective.remaining < LOCAL_POPSIZE else ('converged',)))
+            'final CMA-ES polish of the best point', LOCAL_POPSIZE, objective.evaluations - spent, best, stopped_by))
     return tuple(runs), generations, certificate
 
 
