@@ -7,3 +7,4 @@ command prints it on one line and exits 2. Anything else that escapes is a bug, 
 
 class DdarmError(Exception):
     """Refused input or a failed run, named in the message."""
+

@@ -139,7 +139,7 @@ class ControllerNode(ManagedNode):
         self.configuration = 0
         self.ticks = 0
         self._forget_configuration()
-        refuse_undeclared_parameters(self, law, self.known_joints, self._one_gain_form)
+        refuse_undeclared_parameters(self, law, self.known_joints, self._one_gain_form, kind='controller')
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         if self.get_parameter('autostart').value:
@@ -185,7 +185,7 @@ class ControllerNode(ManagedNode):
         gains = effective_gains(law, values, self.model, None, given_gains(values, self.joints))
         self.controller = SampledController(
             make_law(law, self.chain, *(gains or (np.ones(self.model.dof),) * 2), *self._friction(values)),
-            checked_delay(values['compute_delay_steps']))
+            checked_delay(values['delay']))
         warm_up(self.chain)
         self.gains_ready = gains is not None
         if self.sampling == 'timer':
@@ -274,7 +274,7 @@ class ControllerNode(ManagedNode):
         self.start_time = self.tick_sample = None
 
     def _declare_parameters(self) -> None:
-        declare_from_schema(self, 'controller')
+        declare_from_schema(self, 'controller', GainError)
 
     def _declare_gains(self) -> None:
         """gains.<joint>.p and gains.<joint>.d for each controlled joint: ros2_controllers' gains by joint name."""
@@ -368,7 +368,7 @@ class ControllerNode(ManagedNode):
         values = proposed_values(self, changes)
         try:
             effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
-            checked_delay(values['compute_delay_steps'])
+            checked_delay(values['delay'])
             self._friction(values)
         except GainError as error:
             return SetParametersResult(successful=False, reason=str(error))
@@ -395,8 +395,8 @@ class ControllerNode(ManagedNode):
         self._set_gains(values)
         self.controller.law = make_law(self.law_name, self.chain, self.controller.law.kp, self.controller.law.kv,
                                        *self._friction(values))
-        if values['compute_delay_steps'] != self.controller.delay:
-            self.controller.set_delay(values['compute_delay_steps'])
+        if values['delay'] != self.controller.delay:
+            self.controller.set_delay(values['delay'])
         self.configuration += 1
         self.get_logger().info(self._describe())
 

@@ -320,7 +320,7 @@ class PlantNode(ManagedNode):
         self.command_subscription = self.reset_service = self.watchdog = None
 
     def _declare_parameters(self) -> None:
-        declare_from_schema(self, 'plant')
+        declare_from_schema(self, 'plant', PlantError)
 
     def _parameter_values(self, changes=()) -> dict:
         return proposed_values(self, changes)

@@ -110,7 +110,7 @@ class RobotNode(ManagedNode):
             self.launch(RobotNodeError)
 
     def _declare_parameters(self) -> None:
-        declare_from_schema(self, 'robot')
+        declare_from_schema(self, 'robot', RobotNodeError)
 
     # Lifecycle ---------------------------------------------------------------------------------
 

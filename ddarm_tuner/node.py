@@ -10,12 +10,14 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
 from ddarm.control.laws import CONTROLLERS
+from ddarm.deprecation import renamed_keys
 from ddarm.ros.executable import run_executable
 from ddarm.ros.executors import node_executor
 from ddarm.ros.parameter_files import parameter_document
 from ddarm.ros.interface import (declare_from_schema, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
                                  undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
+from ddarm.recording.gains_file import CONTROLLER_RENAMED
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode, read_motion_file
 from ddarm.interrupts import Interrupted, stop_on_signals
@@ -37,7 +39,7 @@ class TunerNode(GraphDriver):
     def __init__(self, **kwargs) -> None:
         super().__init__('tuner', **kwargs)
         self._given_overrides = tuple(kwargs.get('parameter_overrides') or ())  # rclpy has no public view
-        declare_from_schema(self, 'tuner')
+        declare_from_schema(self, 'tuner', EpisodeError)
         refuse_undeclared_parameters(self, 'tuner')
         try:
             self.specs = self._checked_sweep()
@@ -65,7 +67,8 @@ class TunerNode(GraphDriver):
                 # Read by the controller node's own rule: gains.<joint>.p/.d or the positional kp/kv.
                 joints = read_motion_file(values['motion'] or None, values['trajectory']).joint_names
                 kp, kv = given_gains({**flat_parameters(gains), 'omega': 0.0}, list(joints))
-                delay, period = gains.get('compute_delay_steps', values['delay']), gains.get('period')
+                gains = renamed_keys(gains, CONTROLLER_RENAMED, f"gains_file {values['gains_file']}", EpisodeError)
+                delay, period = gains.get('delay', values['delay']), gains.get('period')
             except (ValueError, KeyError, TypeError, AttributeError) as error:
                 # ValueError: a file beyond its bounds or not YAML (ParameterFileError), or gains the controller
                 # would refuse (GainError, MotionError)

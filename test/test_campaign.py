@@ -22,7 +22,7 @@ import yaml
 from ddarm.cli.main import main
 from ddarm.interrupts import Interrupted
 from ddarm.recording.bags import score_bag
-from ddarm.tuning.campaign import load_campaign, parse_campaign, search_jobs
+from ddarm.tuning.campaign import CampaignError, load_campaign, parse_campaign, search_jobs
 from ddarm.tuning.jobs import run_jobs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +35,7 @@ budget: 200
 omegas: [12, 15]
 motions:
   - {name: t1, trajectory: 1, duration: 0.5}
-laws: [computed_torque, pd_gravity]
+controllers: [computed_torque, pd_gravity]
 """
 # The fields of a job's record that a search and its bag decide: equal wherever the search ran.
 RESULT_FIELDS = ('name', 'status', 'kp', 'kv', 'search_index', 'in_process', 'I1', 'I2', 'I', 'bag_index', 'bag')
@@ -62,6 +62,22 @@ def test_the_example_campaign_parses_and_expands():
     assert warning.startswith("z1-computed-torque: joint 'joint6'") and 'within one sampling period' in warning
 
 
+def test_the_old_keys_laws_and_law_are_read_as_controllers_and_controller_with_a_notice(tmp_path):
+    from ddarm.deprecation import DeprecatedName
+
+    old = 'index: I\nlaws: [pd_gravity]\njobs: [{name: listed, law: computed_torque}]\n'
+    new = 'index: I\ncontrollers: [pd_gravity]\njobs: [{name: listed, controller: computed_torque}]\n'
+    with pytest.warns(DeprecatedName) as notices:
+        campaign = parse_campaign(old, tmp_path / 'old.yaml')
+    assert sorted(str(notice.message).split(': ')[-1] for notice in notices) == [
+        "'law' is deprecated, read as 'controller' (give 'controller' instead)",
+        "'laws' is deprecated, read as 'controllers' (give 'controllers' instead)"]
+    assert campaign.jobs == parse_campaign(new, tmp_path / 'new.yaml').jobs
+    assert [job.controller for job in campaign.jobs] == ['pd_gravity', 'computed_torque']
+    with pytest.raises(CampaignError, match=r'controllers given twice, as controllers .* deprecated name laws'):
+        parse_campaign('index: I\nlaws: [pd_gravity]\ncontrollers: [computed_torque]\n', tmp_path / 'both.yaml')
+
+
 def test_the_product_is_every_arm_motion_law_and_scenario_in_order_then_the_listed_jobs(tmp_path):
     campaign = parse_campaign(textwrap.dedent(f"""
         index: 3.2
@@ -69,10 +85,11 @@ def test_the_product_is_every_arm_motion_law_and_scenario_in_order_then_the_list
         delay: 0
         arms: [{{name: paper}}, {{urdf: {ROOT / 'config' / 'ddarm.urdf'}}}]
         motions: [{{trajectory: 1}}, {{name: short, trajectory: 2, duration: 0.5}}]
-        laws: [pd_gravity, computed_torque]
+        controllers: [pd_gravity, computed_torque]
         scenarios: [{{}}, {{name: heavy, mass_scale: 1.2, tau: 0.1}}]
         jobs:
-          - {{law: computed_torque, index: I1, seed: 3, omegas: [10], scenario: {{name: pz, external_torque: [0, 1, 2]}}}}
+          - {{controller: computed_torque, index: I1, seed: 3, omegas: [10],
+             scenario: {{name: pz, external_torque: [0, 1, 2]}}}}
     """), tmp_path / 'product.yaml')
     names = [job.name for job in campaign.jobs]
     assert names[:4] == ['paper.trajectory-1.pd_gravity.nominal', 'paper.trajectory-1.pd_gravity.heavy',
@@ -87,59 +104,61 @@ def test_the_product_is_every_arm_motion_law_and_scenario_in_order_then_the_list
     assert listed.template.external_torque == (0.0, 1.0, 2.0) and listed.template.delay == 0
 
 
+PD = 'index: I\ncontrollers: [pd_gravity]\n'  # a campaign of one controller, the rest its defaults
 BAD_FILES = [
-    ('laws: [pd_gravity]\nindex: I\ncolour: red\n', "the top level: unknown key 'colour'"),
-    ('index: I\njobs: [{law: pd_gravity, arm: {urdf: nowhere.urdf}}]\n', 'jobs[0].arm.urdf:'),
-    ('index: I\njobs: [{law: pd_gravity, arm: {urdf: nowhere.urdf}}]\n', 'nowhere.urdf: no such file'),
-    ('index: I\njobs: [{law: pd_gravity, motion: {file: gone.yaml}}]\n', 'jobs[0].motion.file:'),
-    ('index: I\nlaws: [pid]\n', "laws[0]: must be one of pd_gravity, computed_torque, got 'pid'"),
-    ('index: I\nlaws: [pd_gravity, pd_gravity]\n', 'laws: a law is given twice'),
-    ('index: I4\nlaws: [pd_gravity]\n', "index: must be one of I1, I2, I"),
-    ('laws: [pd_gravity]\n', 'no index'),
-    ('index: I\nbudget: 5\nlaws: [pd_gravity]\n', 'budget must be a whole number of at least'),
-    ('index: I\nbudget: 2.5\nlaws: [pd_gravity]\n', 'budget: must be a whole number of at least 1, got 2.5'),
-    ('index: I\nbudget: true\nlaws: [pd_gravity]\n', 'budget: must be a whole number'),
-    ('index: I\nseed: -1\nlaws: [pd_gravity]\n', 'seed: must be a whole number of at least 0'),
-    ('index: I\nmethod: simplex\nlaws: [pd_gravity]\n', 'method: must be one of global, nelder-mead, cma'),
-    ('index: I\nomegas: []\nlaws: [pd_gravity]\n', 'omegas: must be a non-empty list'),
-    ('index: I\nomegas: [10, -1]\nlaws: [pd_gravity]\n', 'omegas[1]: must be positive'),
-    ('index: I\nperiod: .nan\nlaws: [pd_gravity]\n', 'period: must be a finite number'),
-    ('index: I\ntorque_limit: lots\nlaws: [pd_gravity]\n', 'torque_limit: must be one of none, paper, urdf'),
-    ('index: I\ntorque_limit: [1, 2]\nlaws: [pd_gravity]\n', 'torque_limit needs 3 values'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, tau: 5}]\n', 'paper.trajectory-1.pd_gravity.a'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, mass_scale: [1, 2]}]\n', 'paper.trajectory-1.pd_gravity.a'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, mass_scale: 0}]\n', 'scenarios[0].mass_scale: must be positive'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, external_torque: [1, 2]}]\n', 'external'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{tau: 0.1}]\n', 'scenarios[0]: a scenario that changes the episode '
+    ('controllers: [pd_gravity]\nindex: I\ncolour: red\n', "the top level: unknown key 'colour'"),
+    ('index: I\njobs: [{controller: pd_gravity, arm: {urdf: nowhere.urdf}}]\n', 'jobs[0].arm.urdf:'),
+    ('index: I\njobs: [{controller: pd_gravity, arm: {urdf: nowhere.urdf}}]\n', 'nowhere.urdf: no such file'),
+    ('index: I\njobs: [{controller: pd_gravity, motion: {file: gone.yaml}}]\n', 'jobs[0].motion.file:'),
+    ('index: I\ncontrollers: [pid]\n', "controllers[0]: must be one of pd_gravity, computed_torque, got 'pid'"),
+    ('index: I\ncontrollers: [pd_gravity, pd_gravity]\n', 'controllers: a controller is given twice'),
+    ('index: I4\ncontrollers: [pd_gravity]\n', "index: must be one of I1, I2, I"),
+    ('controllers: [pd_gravity]\n', 'no index'),
+    ('index: I\nbudget: 5\ncontrollers: [pd_gravity]\n', 'budget must be a whole number of at least'),
+    ('index: I\nbudget: 2.5\ncontrollers: [pd_gravity]\n', 'budget: must be a whole number of at least 1, got 2.5'),
+    ('index: I\nbudget: true\ncontrollers: [pd_gravity]\n', 'budget: must be a whole number'),
+    ('index: I\nseed: -1\ncontrollers: [pd_gravity]\n', 'seed: must be a whole number of at least 0'),
+    ('index: I\nmethod: simplex\ncontrollers: [pd_gravity]\n', 'method: must be one of global, nelder-mead, cma'),
+    ('index: I\nomegas: []\ncontrollers: [pd_gravity]\n', 'omegas: must be a non-empty list'),
+    ('index: I\nomegas: [10, -1]\ncontrollers: [pd_gravity]\n', 'omegas[1]: must be positive'),
+    ('index: I\nperiod: .nan\ncontrollers: [pd_gravity]\n', 'period: must be a finite number'),
+    ('index: I\ntorque_limit: lots\ncontrollers: [pd_gravity]\n', 'torque_limit: must be one of none, paper, urdf'),
+    ('index: I\ntorque_limit: [1, 2]\ncontrollers: [pd_gravity]\n', 'torque_limit needs 3 values'),
+    (PD + 'scenarios: [{name: a, tau: 5}]\n', 'paper.trajectory-1.pd_gravity.a'),
+    (PD + 'scenarios: [{name: a, mass_scale: [1, 2]}]\n', 'paper.trajectory-1.pd_gravity.a'),
+    (PD + 'scenarios: [{name: a, mass_scale: 0}]\n', 'scenarios[0].mass_scale: must be positive'),
+    (PD + 'scenarios: [{name: a, external_torque: [1, 2]}]\n', 'external'),
+    (PD + 'scenarios: [{tau: 0.1}]\n', 'scenarios[0]: a scenario that changes the episode '
                                                               'needs a name'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a}, {name: a}]\n', "scenarios: the name 'a' is given 2 times"),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a/b}]\n', 'scenarios[0].name: must be a name'),
+    (PD + 'scenarios: [{name: a}, {name: a}]\n', "scenarios: the name 'a' is given 2 times"),
+    (PD + 'scenarios: [{name: a/b}]\n', 'scenarios[0].name: must be a name'),
     # paper.trajectory-1.pd_gravity. and 221 characters: 251, and .mcap makes 256, one more than a file name holds.
-    (f"index: I\nlaws: [pd_gravity]\nscenarios: [{{name: {'s' * 221}, tau: 0.1}}]\n",
+    (PD + f"scenarios: [{{name: {'s' * 221}, tau: 0.1}}]\n",
      f"the job paper.trajectory-1.pd_gravity.{'s' * 221} (of the product): its name 'paper.trajectory-1.pd_gravity.s"),
-    (f"index: I\njobs: [{{name: {'j' * 251}, law: pd_gravity}}]\n", '(251 characters) names its bag\'s storage file '
+    (f"index: I\njobs: [{{name: {'j' * 251}, controller: pd_gravity}}]\n",
+     '(251 characters) names its bag\'s storage file '
                                                                    'and gains file'),
-    ('index: I\nlaws: [pd_gravity]\nscenarios: [{name: a, payload: 2}]\n', "scenarios[0]: unknown key 'payload'"),
-    ('index: I\nlaws: [pd_gravity]\nmotions: [{trajectory: 1, file: x.yaml}]\n', 'motions[0]: give one of trajectory'),
-    ('index: I\nlaws: [pd_gravity]\nmotions: [{trajectory: 3}]\n', 'motions[0].trajectory: must be one of (1, 2)'),
-    ('index: I\nlaws: [pd_gravity]\nmotions: [{trajectory: 1, duration: 0}]\n', 'motions[0].duration: must be '
+    (PD + 'scenarios: [{name: a, payload: 2}]\n', "scenarios[0]: unknown key 'payload'"),
+    (PD + 'motions: [{trajectory: 1, file: x.yaml}]\n', 'motions[0]: give one of trajectory'),
+    (PD + 'motions: [{trajectory: 3}]\n', 'motions[0].trajectory: must be one of (1, 2)'),
+    (PD + 'motions: [{trajectory: 1, duration: 0}]\n', 'motions[0].duration: must be '
                                                                               'positive'),
     # The Z1's 6 joints and the paper's motion of 3: the product's job is named.
-    (f'index: I\nlaws: [pd_gravity]\narms: [{{urdf: {Z1 / "z1.urdf"}}}]\n', 'the job z1.trajectory-1.pd_gravity.nominal '
+    (PD + f'arms: [{{urdf: {Z1 / "z1.urdf"}}}]\n', 'the job z1.trajectory-1.pd_gravity.nominal '
                                                                           '(of the product): URDF'),
-    (f'index: I\nlaws: [pd_gravity]\narms: [{{model_urdf: {Z1 / "z1.urdf"}}}]\n', 'arms[0]: model_urdf is the model'),
-    ('index: I\narms: [{name: paper}]\n', 'laws: arms, motions and scenarios make jobs only with laws'),
+    (PD + f'arms: [{{model_urdf: {Z1 / "z1.urdf"}}}]\n', 'arms[0]: model_urdf is the model'),
+    ('index: I\narms: [{name: paper}]\n', 'controllers: arms, motions and scenarios make jobs only with controllers'),
     ('index: I\n', 'no jobs'),
     ('', 'empty'),
-    ('index: I\njobs: [{arm: {name: paper}}]\n', 'jobs[0]: no law'),
-    ('index: I\njobs: [{law: pd_gravity, delay: -1}]\n', 'jobs[0].delay: must be a whole number of at least 0'),
-    ('index: I\nlaws: [pd_gravity]\njobs: [{law: pd_gravity}]\n', "its name 'paper.trajectory-1.pd_gravity.nominal' "
+    ('index: I\njobs: [{arm: {name: paper}}]\n', 'jobs[0]: no controller'),
+    ('index: I\njobs: [{controller: pd_gravity, delay: -1}]\n', 'jobs[0].delay: must be a whole number of at least 0'),
+    (PD + 'jobs: [{controller: pd_gravity}]\n', "its name 'paper.trajectory-1.pd_gravity.nominal' "
                                                                  'is also that of'),
-    ('index: I\nlaws: [pd_gravity]\nindex: I1\n', 'duplicate key'),
-    ('index: I\nlaws: [pd_gravity\n', 'not a YAML file'),
+    (PD + 'index: I1\n', 'duplicate key'),
+    ('index: I\ncontrollers: [pd_gravity\n', 'not a YAML file'),
     ('- index: I\n', 'the top level: must be a mapping'),
     # YAML 1.2 reads 017 as text, not as 15 (YAML 1.1) or 17.
-    ('index: I\nbudget: 017\nlaws: [pd_gravity]\n', "budget: must be a whole number of at least 1, got '017'"),
+    ('index: I\nbudget: 017\ncontrollers: [pd_gravity]\n', "budget: must be a whole number of at least 1, got '017'"),
 ]
 
 
@@ -161,7 +180,7 @@ def test_a_urdf_or_motion_that_is_no_regular_file_is_refused_saying_what_it_is(c
     for field, key in (('arm: {urdf: arm.urdf}', 'arm.urdf'),
                        (f'arm: {{urdf: {Z1 / "z1.urdf"}, model_urdf: arm.urdf}}', 'arm.model_urdf'),
                        ('motion: {file: arm.urdf}', 'motion.file')):
-        path = write(tmp_path, f'index: I\njobs: [{{law: pd_gravity, {field}}}]\n')
+        path = write(tmp_path, f'index: I\njobs: [{{controller: pd_gravity, {field}}}]\n')
         assert main(['campaign', str(path), '--out', str(tmp_path / 'run')]) == 2
         err = capsys.readouterr().err
         assert err.strip() == f'ddarm campaign: {path}: jobs[0].{key}: {target} {named}', err
@@ -279,9 +298,10 @@ def test_a_campaign_locally_and_on_ray_gives_the_same_summary_every_number_from_
         assert record['bag_index'] == pytest.approx(record['search_index'], rel=1e-9)
         scored = score_bag(run / record['bag'])  # every number the summary gives is the bag's
         assert {key: scored[key] for key in ('I1', 'I2', 'I')} == {key: record[key] for key in ('I1', 'I2', 'I')}
-        gains = yaml.safe_load((run / record['gains_file']).read_text())[record['law']]['ros__parameters']['gains']
+        node = yaml.safe_load((run / record['gains_file']).read_text())[record['controller']]
+        gains = node['ros__parameters']['gains']
         assert [gains[name]['p'] for name in record['joint_names']] == record['kp']
-        assert f"| {record['name']} | paper | t1 | {record['law']} | nominal: " in table
+        assert f"| {record['name']} | paper | t1 | {record['controller']} | nominal: " in table
         assert f"[{record['bag_index']:.6g}]({record['bag']}) | ok |" in table
     assert (run / 'index-per-job.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
 
@@ -294,7 +314,7 @@ def test_a_job_that_fails_is_reported_as_failed_beside_the_others_and_the_exit_i
         omegas: [15]
         torque_limit: paper
         motions: [{name: short, trajectory: 1, duration: 0.3}]
-        laws: [computed_torque]
+        controllers: [computed_torque]
         scenarios:
           - {name: nominal}
           - {name: crushing, external_torque: [0, 100000, 0]}   # far past the torque limit: every episode diverges

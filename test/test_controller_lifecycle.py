@@ -52,7 +52,7 @@ def controller(context, **extra) -> ControllerNode:
     gains = {f'gains.{joint}.{key}': value for joint in joints for key, value in (('p', 225.0), ('d', 30.0))}
     return ControllerNode(LAW, context=context, parameter_overrides=overrides({
         'use_sim_time': True, 'sampling': 'timer', 'command_type': 'float64_multi_array', 'command_topic': COMMANDS,
-        'motion': str(MOTION), 'urdf': str(URDF), 'compute_delay_steps': 1, 'period': PERIOD * 1e-9,
+        'motion': str(MOTION), 'urdf': str(URDF), 'delay': 1, 'period': PERIOD * 1e-9,
         **gains, **extra}))
 
 

@@ -121,7 +121,7 @@ def controller_node(context, law, command_type, kp, kv, delay, **extra):
     return ControllerNode(law, context=context, parameter_overrides=overrides({
         'use_sim_time': True, 'sampling': 'timer', 'command_type': command_type,
         'command_topic': COMMANDS if command_type == 'float64_multi_array' else 'effort_command',
-        'motion': str(MOTION), 'urdf': str(URDF), 'compute_delay_steps': delay, 'period': PERIOD * 1e-9,
+        'motion': str(MOTION), 'urdf': str(URDF), 'delay': delay, 'period': PERIOD * 1e-9,
         **gains, **extra}))
 
 
@@ -291,7 +291,7 @@ def test_the_period_is_fixed_in_timer_mode(ros_context):
     try:
         result = node.set_parameters([rclpy.parameter.Parameter('period', value=0.02)])[0]
         assert not result.successful and 'fixed' in result.reason
-        assert node.set_parameters([rclpy.parameter.Parameter('compute_delay_steps', value=2)])[0].successful
+        assert node.set_parameters([rclpy.parameter.Parameter('delay', value=2)])[0].successful
     finally:
         node.destroy_node()
 

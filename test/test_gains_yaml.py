@@ -62,7 +62,7 @@ def test_controller_yaml_writes_the_gains_keyed_by_joint_with_the_arm():
     assert 'kp' not in parameters and 'kv' not in parameters
     assert parameters['urdf'] == str((Path.cwd() / 'config/ddarm.urdf').resolve())
     assert parameters['motion'] == str((Path.cwd() / 'config/arms/ur5/ur5-motion.yaml').resolve())
-    assert (parameters['compute_delay_steps'], parameters['period'], parameters['omega']) == (2, 0.005, 0.0)
+    assert (parameters['delay'], parameters['period'], parameters['omega']) == (2, 0.005, 0.0)
     # Without urdf and motion, neither is written (the node's defaults).
     plain = yaml.safe_load(controller_yaml('pd_gravity', [1, 2, 3], [4, 5, 6], 1, 0.01, 'x',
                                            joint_names=DDARM_JOINTS))['pd_gravity']['ros__parameters']
@@ -262,3 +262,25 @@ def test_a_yaml_tuned_over_another_T_runs_its_motion_over_that_T_in_timer_mode()
     np.testing.assert_allclose(reference.q[25], (file.motion.q0 + file.motion.qf) / 2, rtol=1e-12)
     np.testing.assert_array_equal(reference.q[-1], file.motion.qf)
     assert len(motion_reference(model, file, 0.01).times) == 101  # 0: the file's own T
+
+
+def test_a_file_with_the_old_name_of_the_delay_is_read_with_a_notice_and_both_names_must_agree(tmp_path):
+    from ddarm.deprecation import DeprecatedName
+    from ddarm.recording.gains_file import GainsFileError, read_gains_file
+
+    text = controller_yaml('pd_gravity', [100.0, 200.0, 300.0], [10.0, 20.0, 30.0], 2, 0.01, 'x',
+                           joint_names=DDARM_JOINTS)
+    path = tmp_path / 'old.yaml'
+    path.write_text(text.replace('delay: 2', 'compute_delay_steps: 0'))
+    with pytest.warns(DeprecatedName, match="'compute_delay_steps' is deprecated, read as 'delay'"):
+        assert read_gains_file(path).delay == 0
+    path.write_text(text.replace('delay: 2', 'delay: 2\n    compute_delay_steps: 0'))
+    with pytest.raises(GainsFileError, match=r'delay given twice, as delay \(2\) and by its deprecated name'):
+        read_gains_file(path)
+    # The node reads such a file as the same delay (its log says the name is deprecated).
+    path.write_text(text.replace('delay: 2', 'compute_delay_steps: 0'))
+    node, context = node_from_file(path, 'pd_gravity')
+    try:
+        assert node.controller.delay == 0 == node.get_parameter('delay').value
+    finally:
+        close(node, context)

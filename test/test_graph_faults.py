@@ -66,7 +66,7 @@ class Probe:
 def controller(ros_context):
     node = ControllerNode('computed_torque', context=ros_context,
                           parameter_overrides=overrides({'kp': [225.0] * 3, 'kv': [30.0] * 3,
-                                                         'compute_delay_steps': 0}))
+                                                         'delay': 0}))
     probe = Probe(ros_context, node)
     plan = plan_episode(EpisodeSpec(controller='computed_torque', kp=(1, 1, 1), kv=(1, 1, 1)))
     probe.reference_publisher.publish(reference_msg(JOINTS, plan.times, plan.q_ref, plan.v_ref, plan.a_ref,
@@ -166,7 +166,7 @@ def test_gains_are_validated_and_a_changed_gain_changes_the_next_command(control
                         ([1.0, float('nan'), 3.0], 'finite')):
         result = node.set_parameters([Parameter('kp', value=kp)])[0]
         assert not result.successful and problem in result.reason
-    result = node.set_parameters([Parameter('compute_delay_steps', value=500)])[0]
+    result = node.set_parameters([Parameter('delay', value=500)])[0]
     assert not result.successful
     np.testing.assert_array_equal(node.controller.law.kp, [225.0] * 3)
     probe.state_publisher.publish(good_state(plan, 0))
@@ -264,8 +264,8 @@ def test_an_incompatible_qos_peer_is_detected(plant):
 @pytest.mark.parametrize('module, law, yaml_text, problem', [
     ('ddarm_control.node', 'computed_torque', 'computed_torque:\n  ros__parameters:\n    kpp: [1.0, 1.0, 1.0]\n'
      '    kp: [1.0, 1.0, 1.0]\n    kv: [1.0, 1.0, 1.0]\n', "unknown parameters ['kpp']"),
-    ('ddarm_control.node', 'pd_gravity', 'pd_gravity:\n  ros__parameters:\n    compute_delay_steps: 500\n'
-     '    kp: [1.0, 1.0, 1.0]\n    kv: [1.0, 1.0, 1.0]\n', 'compute_delay_steps'),
+    ('ddarm_control.node', 'pd_gravity', 'pd_gravity:\n  ros__parameters:\n    delay: 500\n'
+     '    kp: [1.0, 1.0, 1.0]\n    kv: [1.0, 1.0, 1.0]\n', 'delay'),
     ('ddarm_control.node', 'pd_gravity', 'pd_gravity:\n  ros__parameters:\n    kp: [1.0, 1.0]\n'
      '    kv: [1.0, 1.0, 1.0]\n', 'kp needs 3'),
     ('ddarm_sim.node', None, 'plant:\n  ros__parameters:\n    perod: 0.01\n', "unknown parameters ['perod']"),

@@ -232,10 +232,12 @@ def test_the_campaign_summary_shows_file_names_descriptions_and_reasons_as_text(
     port, _ = listener
     path = tmp_path / f'{SCRIPT}|{MARKDOWN}.yaml'
     campaign = Campaign(path, '', f'{refresh_to(port)}\n# not a heading\n| not | a row |', (), ())
-    failed = {'name': 'paper.t1.computed_torque.nominal', 'arm': 'paper', 'motion': 't1', 'law': 'computed_torque',
+    failed = {'name': 'paper.t1.computed_torque.nominal', 'arm': 'paper', 'motion': 't1',
+              'controller': 'computed_torque', 'law': 'computed_torque',
               'scenario_text': 'nominal: τ = 0 s', 'index': 'I', 'status': 'failed',
               'reason': f'graph episode: joint {refresh_to(port)} |\n| x | y | z |'}
-    ok = {**failed, 'name': 'paper.t1.pd_gravity.nominal', 'law': 'pd_gravity', 'status': 'ok', 'search_index': 2.5,
+    ok = {**failed, 'name': 'paper.t1.pd_gravity.nominal', 'controller': 'pd_gravity', 'law': 'pd_gravity', 'status': 'ok',
+          'search_index': 2.5,
           'bag_index': 2.5, 'bag': 'bags/paper.t1.pd_gravity.nominal'}
     (tmp_path / 'bags' / ok['name']).mkdir(parents=True)
     draw_png(tmp_path / 'index-per-job.png', 7)
@@ -285,7 +287,7 @@ def test_run_folders_in_a_missing_folder_are_refused_before_any_work(capsys, tmp
     assert main(['tune', '--controller', 'computed_torque', '--index', 'I', '--runs', str(missing)]) == 2
     assert f'{missing}: the folder {missing.parent} does not exist' in capsys.readouterr().err
     campaign = tmp_path / 'campaign.yaml'
-    campaign.write_text('index: I\nlaws: [computed_torque]\nbudget: 200\n')
+    campaign.write_text('index: I\ncontrollers: [computed_torque]\nbudget: 200\n')
     assert main(['campaign', str(campaign), '--out', str(missing / 'run')]) == 2
     assert f'--out {missing / "run"}: the folder {missing} does not exist' in capsys.readouterr().err
     assert not (tmp_path / 'missing').exists()
@@ -330,7 +332,7 @@ def test_a_runs_folder_through_a_file_is_refused_as_through_a_file_not_as_missin
 
 def test_a_campaign_or_pareto_folder_through_a_file_is_refused_as_through_a_file(capsys, tmp_path, a_file):
     campaign = tmp_path / 'campaign.yaml'
-    campaign.write_text('index: I\nlaws: [computed_torque]\nbudget: 200\n')
+    campaign.write_text('index: I\ncontrollers: [computed_torque]\nbudget: 200\n')
     for arguments, option in ((['campaign', str(campaign)], '--out'),
                               (['pareto', '--controller', 'computed_torque', '--budget', '10000'], '--yaml-dir')):
         err = refusal(capsys, [*arguments, option, str(a_file / 'x')])
@@ -383,7 +385,7 @@ budget: 200
 omegas: [12, 15]
 motions:
   - {name: t1, trajectory: 1, duration: 0.5}
-laws: [computed_torque, pd_gravity]
+controllers: [computed_torque, pd_gravity]
 """
 
 

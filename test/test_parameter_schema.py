@@ -66,7 +66,7 @@ def _described(context, node, name, probe):
      ('position_noise', 11.0)),
     ('controller', 'computed_torque', lambda context: ControllerNode('computed_torque', context=context,
                                                                      parameter_overrides=overrides(GAINS)),
-     ('compute_delay_steps', 101)),
+     ('delay', 101)),
     ('tuner', 'tuner', lambda context: TunerNode(context=context, parameter_overrides=overrides(GAINS)),
      ('episode_timeout', 0.5)),
 ])
@@ -149,3 +149,25 @@ def test_the_driver_sets_through_the_services_every_parameter_of_an_episode_but_
         assert {'urdf', 'motion'} <= set(given) and {'urdf', 'motion'} <= read_only(kind)
         sent = {parameter.name for parameter in service_parameters(given, (), kind)}
         assert sent == set(given) - read_only(kind)
+
+
+def test_a_deprecated_name_sets_the_parameter_it_names_at_start_and_at_run_time_and_mirrors_it(ros_context):
+    from ddarm.recording.gains_file import CONTROLLER_RENAMED
+    from ddarm.ros.parameter_schema import aliases
+
+    assert aliases('controller') == CONTROLLER_RENAMED == {'compute_delay_steps': 'delay'}  # files read them alike
+    node = ControllerNode('pd_gravity', context=ros_context,
+                          parameter_overrides=overrides({**GAINS, 'compute_delay_steps': 0}))
+    try:
+        assert node.get_parameter('delay').value == 0 == node.controller.delay
+        assert node.set_parameters([Parameter('compute_delay_steps', value=2)])[0].successful
+        assert node.get_parameter('delay').value == 2 == node.controller.delay
+        assert node.set_parameters([Parameter('delay', value=1)])[0].successful
+        assert node.get_parameter('compute_delay_steps').value == 1 == node.controller.delay
+        refused = node.set_parameters([Parameter('compute_delay_steps', value=101)])[0]
+        assert not refused.successful and node.controller.delay == 1
+    finally:
+        node.destroy_node()
+    with pytest.raises(Exception, match='delay given twice'):
+        ControllerNode('pd_gravity', context=ros_context,
+                       parameter_overrides=overrides({**GAINS, 'compute_delay_steps': 0, 'delay': 2}))

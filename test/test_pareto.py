@@ -105,7 +105,7 @@ def test_the_yaml_dir_holds_each_points_controller_yaml_with_its_gains(front_run
     for path, point in zip(files, report['front']):
         parameters = yaml.safe_load(path.read_text())['computed_torque']['ros__parameters']
         assert given_gains(flat_parameters(parameters), report['joint_names']) == (point['kp'], point['kv'])
-        assert (parameters['compute_delay_steps'], parameters['period']) == (1, 0.01)
+        assert (parameters['delay'], parameters['period']) == (1, 0.01)
 
 
 def test_the_plot_is_a_png(front_run):

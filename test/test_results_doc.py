@@ -224,7 +224,7 @@ def test_identify_json(work):
 
 def test_campaign(work):
     (work / 'campaign.yaml').write_text(f'index: I\nbudget: 200\narms:\n  - name: paper\nmotions:\n'
-                                        f'  - {{name: t1, trajectory: 1}}\nlaws: [{LAW}]\nscenarios:\n'
+                                        f'  - {{name: t1, trajectory: 1}}\ncontrollers: [{LAW}]\nscenarios:\n'
                                         f'  - name: nominal\n')
     (work / 'runs').mkdir(exist_ok=True)
     printed = run_json(work, 'campaign', 'campaign.yaml', '--out', 'runs/campaign', '--jobs', '1')

@@ -183,7 +183,7 @@ def episode_on_the_robot(context, law, delay, gains, **robot_parameters):
         Parameter('urdf', value=str(URDF)), Parameter('motion', value=str(MOTION)),
         Parameter('sampling', value='timer'), Parameter('command_type', value='float64_multi_array'),
         Parameter('command_topic', value=COMMANDS), Parameter('use_sim_time', value=True),
-        Parameter('compute_delay_steps', value=delay), Parameter('velocity_limit_factor', value=1e6),
+        Parameter('delay', value=delay), Parameter('velocity_limit_factor', value=1e6),
         *[Parameter(f'gains.{joint}.{key}', value=gain) for joint in plan.joint_names
           for key, gain in zip('pd', gains)]])
     graph = Graph(context, robot, controller)

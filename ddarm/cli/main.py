@@ -23,6 +23,7 @@ from ddarm.cli.tune import add_robust_arguments, command_tune, index_name
 from ddarm.cli.validate import add_validate_arguments, command_validate
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
+from ddarm.deprecation import one_line_deprecations
 from ddarm.errors import DdarmError
 from ddarm.realtime import PRIORITY_RANGE, SPIN_MARGIN_RANGE
 from ddarm.cli.bench import add_bench_parser
@@ -165,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
+    one_line_deprecations()
     parser = build_parser()
     args, ros_arguments = parser.parse_known_args(argv)
     if ros_arguments and not getattr(args, 'takes_ros_arguments', False):

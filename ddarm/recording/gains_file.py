@@ -2,9 +2,10 @@
 
 The file is what `ros2 run ddarm_control <law> --ros-args --params-file` loads: one law's node key, its
 `ros__parameters` with the gains keyed by joint (`gains: {<joint>: {p, d}}`) or positional (`kp`, `kv` in joint
-order), `compute_delay_steps`, `period`, and the `urdf` and `motion` the gains were tuned for. Read here as the
-node reads it, so that the episode validated is the one the node would run: every refusal names the file and the
-parameter, and nothing the node would do differently (an ω rule in force, an extra model friction) is passed over.
+order), `delay` (formerly `compute_delay_steps`, still read), `period`, and the `urdf` and `motion` the gains were
+tuned for. Read here as the node reads it, so that the episode validated is the one the node would run: every refusal
+names the file and the parameter, and nothing the node would do differently (an ω rule in force, an extra model
+friction) is passed over.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 from ddarm.control.laws import CONTROLLERS, MAX_DELAY
 from ddarm.datafiles import PARAMETERS_KEY, is_missing, parameter_document, unreachable
 from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec, read_motion_file
+from ddarm.deprecation import renamed_keys
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, movable_joints
@@ -25,6 +27,8 @@ from ddarm.physics.plant import NODE_PERIOD_RANGE
 DEFAULT_DELAY, DEFAULT_PERIOD = EPISODE_DEFAULTS['delay'], EPISODE_DEFAULTS['period']
 # The node's bound on `duration`, s (0: the motion file's own).
 MAX_NODE_DURATION = 3600.0
+# The controller node's deprecated parameter names, each with the one it is read as (the schema's aliases).
+CONTROLLER_RENAMED = {'compute_delay_steps': 'delay'}
 # Parameters that make the node's law another than the gains' in the file: validating the gains alone would be
 # validating a controller the robot does not run.
 LAW_CHANGING = ('viscous_friction', 'coulomb_friction')
@@ -170,6 +174,7 @@ def read_gains_file(path: str | Path) -> GainsFile:
     """
     path = str(path)
     law, parameters = _law_parameters(path, _document(path))
+    parameters = renamed_keys(parameters, CONTROLLER_RENAMED, f'gains file {path}', GainsFileError)
     omega = parameters.get('omega', 0.0)
     if not (_is_number(omega) and omega == 0):
         raise GainsFileError(f'gains file {path}: omega is {omega!r}: the controller node would replace its gains '
@@ -182,9 +187,9 @@ def read_gains_file(path: str | Path) -> GainsFile:
     motion = _input_file(path, 'motion', parameters.get('motion'))
     joints = _joint_names(path, urdf, motion)
     kp, kv = _gains(path, parameters, joints)
-    delay = parameters.get('compute_delay_steps', DEFAULT_DELAY)
+    delay = parameters.get('delay', DEFAULT_DELAY)
     if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= MAX_DELAY:
-        raise GainsFileError(f'gains file {path}: compute_delay_steps is {delay!r}, not a whole number of samples '
+        raise GainsFileError(f'gains file {path}: delay is {delay!r}, not a whole number of samples '
                              f'in [0, {MAX_DELAY}]')
     period = parameters.get('period', DEFAULT_PERIOD)
     if not (_is_number(period) and NODE_PERIOD_RANGE[0] <= period <= NODE_PERIOD_RANGE[1]):

@@ -74,7 +74,7 @@ def controller_yaml(controller: str, kp, kv, delay: int, period: float, provenan
         parameters['duration'] = float(duration)
     parameters.update({
         'gains': {name: {'p': float(p), 'd': float(d)} for name, p, d in zip(names, kp, kv)}, 'omega': 0.0,
-        'compute_delay_steps': int(delay), 'period': float(period)})
+        'delay': int(delay), 'period': float(period)})
     header = ''.join(f'# {line}\n' for line in provenance.splitlines())
     # Flow style for the innermost mappings: one line per joint, `<joint>: {p: …, d: …}`.
     return header + yaml.safe_dump({controller: {'ros__parameters': parameters}}, sort_keys=False,

@@ -19,11 +19,12 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ddarm.control.laws import GainError
+from ddarm.deprecation import deprecation_notice
 from ddarm.ros.cdr import stamp_of
 # A node's life as an executable lives in ddarm.ros.executable; the nodes have imported these from here.
 from ddarm.ros.executable import context_arguments
 from ddarm.ros.parameter_files import given_parameters
-from ddarm.ros.parameter_schema import GAIN_KEYS, NodeParameter, joint_gains, parameters_of
+from ddarm.ros.parameter_schema import GAIN_KEYS, NodeParameter, aliases, joint_gains, parameters_of
 # Defined with the controllers' parameters (command_topic's default), named here with the other topics.
 from ddarm.ros.parameter_schema import EFFORT_COMMAND_TOPIC  # noqa: F401
 from ddarm.samples import (MAX_JOINTS, MessageError, checked_reference, finite_array, joint_order, sample_at,
@@ -283,10 +284,48 @@ def _declare(node, parameter: NodeParameter) -> None:
                            descriptor(parameter.description, read_only=parameter.read_only, **ranged))
 
 
-def declare_from_schema(node, kind: str) -> None:
-    """Declare the parameters of a node of `kind` (ddarm.ros.parameter_schema.NODES) as the schema gives them."""
+def declare_from_schema(node, kind: str, refused: type[Exception]) -> None:
+    """Declare the parameters of a node of `kind` (ddarm.ros.parameter_schema.NODES) as the schema gives them.
+
+    A deprecated name given at start (a parameter file, -p) sets the parameter it is the old name of, with a
+    notice in the node's log; `refused` names both when they are given different values.
+    """
+    from rclpy.parameter import Parameter
+
     for parameter in parameters_of(kind):
         _declare(node, parameter)
+    defaults = {parameter.name: parameter.default for parameter in parameters_of(kind)}
+    for old, new in aliases(kind).items():
+        given, current = node.get_parameter(old).value, node.get_parameter(new).value
+        if given == defaults[old]:
+            continue
+        if current != defaults[new] and current != given:
+            node.destroy_node()
+            raise refused(f'{new} given twice, as {new} ({current}) and by its deprecated name {old} ({given}): '
+                          f'give {new} only')
+        node.get_logger().warning(deprecation_notice(old, new, f'{kind} parameter'))
+        node.set_parameters([Parameter(new, value=given)])
+
+
+def mirrored_aliases(node, kind: str, parameters: list) -> list:
+    """A set of parameters as it is applied: a deprecated name sets the parameter it names (with a notice in the
+    node's log), and each such pair keeps one value, the new name's when a set gives both."""
+    from rclpy.parameter import Parameter
+
+    old_names = aliases(kind)
+    if not old_names:
+        return parameters
+    new_names = {new: old for old, new in old_names.items()}
+    by_name = {parameter.name: parameter for parameter in parameters}
+    for parameter in parameters:
+        if parameter.name in old_names and old_names[parameter.name] not in by_name:
+            new = old_names[parameter.name]
+            node.get_logger().warning(deprecation_notice(parameter.name, new, f'{kind} parameter'))
+            by_name[new] = Parameter(new, value=parameter.value)
+    for new, old in new_names.items():
+        if new in by_name:
+            by_name[old] = Parameter(old, value=by_name[new].value)
+    return list(by_name.values())
 
 
 def declare_joint_gains(node, joint: str) -> None:
@@ -382,7 +421,7 @@ def undeclared_overrides(node, given=()) -> list[str]:
                   if not node.has_parameter(name) and name != 'use_sim_time' and not name.startswith('qos_overrides.'))
 
 
-def refuse_undeclared_parameters(node, what: str, joints=None, rewrite=None) -> None:
+def refuse_undeclared_parameters(node, what: str, joints=None, rewrite=None, kind: str | None = None) -> None:
     """Make the node refuse to set undeclared parameters with a reason that names them.
 
     rclpy (7.1) refuses them with "undeclared parameter(s): []": its check consumes the
@@ -391,12 +430,14 @@ def refuse_undeclared_parameters(node, what: str, joints=None, rewrite=None) -> 
     `what` names the node's kind for the hint ("not a plant parameter"); a controller gives its
     `joints`, so that gains.<joint>.p for a joint it does not control is refused naming the joint.
     `rewrite(parameters) -> parameters` then adds to a change what must change with it: rclpy (7.1)
-    concatenates what each pre-set callback returns, so a node has this one.
+    concatenates what each pre-set callback returns, so a node has this one. A deprecated name of a node of
+    `kind` (the schema's; default `what`) sets the parameter it names (`mirrored_aliases`) before `rewrite`.
     """
     def check(parameters: list) -> list:
         unknown = sorted({parameter.name for parameter in parameters if not node.has_parameter(parameter.name)})
         if unknown:
             raise ParameterNotDeclaredException(unknown_parameters_reason(unknown, what, joints))
+        parameters = mirrored_aliases(node, kind or what, parameters)
         return parameters if rewrite is None else rewrite(parameters)
 
     node.add_pre_set_parameters_callback(check)

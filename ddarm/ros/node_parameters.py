@@ -82,7 +82,7 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
                 'viscous_friction': spec.viscous_friction, 'coulomb_friction': spec.coulomb_friction,
                 'external_torque': spec.external_torque, 'mass_scale': spec.mass_scale}
     plant.update({name: [float(x) for x in value] for name, value in optional.items() if value is not None})
-    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0, 'compute_delay_steps': spec.delay,
+    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0, 'delay': spec.delay,
                   'period': spec.period}
     # The in-process runner gives computed torque the plant's friction as its model F̂; so does this.
     controller.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')

@@ -50,10 +50,17 @@ class NodeParameter:
     unit: str = ''
     range: tuple[float, float] | None = None  # closed, for integer and double parameters
     read_only: bool = False
+    alias_of: str = ''  # a deprecated name: setting it sets this parameter, which it mirrors
 
 
 def _p(name, type_, default, description, nodes, unit='', range_=None, read_only=False) -> NodeParameter:
     return NodeParameter(name, type_, default, description, tuple(nodes.split()), unit, range_, read_only)
+
+
+def _alias(old: str, parameter: NodeParameter) -> NodeParameter:
+    """`old`, a deprecated name of `parameter`: still taken (a one-line notice in the node's log), mirrors it."""
+    return replace(parameter, name=old, description=f'deprecated: the old name of {parameter.name}, read as it',
+                   alias_of=parameter.name)
 
 
 SCHEDULING = (
@@ -143,6 +150,9 @@ ROBOT = (
        read_only=True),
 )
 
+CONTROLLER_DELAY = _p('delay', 'integer', EPISODE['delay'], 'compute delay d in samples: the command of sample n is '
+                      'computed from the state of sample n - d', 'controller', 'samples', (0, MAX_DELAY))
+
 CONTROLLER = (
     _p('urdf', 'string', '', 'URDF of the controller model ("" = the ddarm arm)', 'controller', read_only=True),
     _p('motion', 'string', '', 'motion file: its joint_names are the controlled joints (the others locked at its '
@@ -156,8 +166,8 @@ CONTROLLER = (
     _p('kv', 'double[]', None, 'K_v diagonal, one positive value per joint (or gains.<joint>.d)', 'controller'),
     _p('omega', 'double', 0.0, 'ω rule of section 2 when > 0 (overrides kp, kv and gains)', 'controller', 'rad/s',
        (0.0, 1e4)),
-    _p('compute_delay_steps', 'integer', EPISODE['delay'],
-       'compute delay d in samples', 'controller', 'samples', (0, MAX_DELAY)),
+    CONTROLLER_DELAY,
+    _alias('compute_delay_steps', CONTROLLER_DELAY),
     _p('period', 'double', EPISODE['period'],
        'sampling period Δ in s (state: to read sample indices from stamps; timer: the '
        'timer period, fixed while the node runs)', 'controller', 's', NODE_PERIOD_RANGE),
@@ -205,7 +215,7 @@ TUNER = (
     _p('controller', 'string', 'computed_torque', f'the law to drive: one of {CONTROLLERS}', 'tuner'),
     _p('kp', 'double[]', None, 'K_p diagonal (unless gains_file)', 'tuner'),
     _p('kv', 'double[]', None, 'K_v diagonal (unless gains_file)', 'tuner'),
-    _p('gains_file', 'string', '', 'controller parameter YAML with kp, kv, compute_delay_steps', 'tuner'),
+    _p('gains_file', 'string', '', 'controller parameter YAML (gains, delay, period)', 'tuner'),
     _p('urdf', 'string', '', 'URDF of the plant\'s arm ("" = the ddarm arm); the plant node must run it', 'tuner',
        read_only=True),
     _p('model_urdf', 'string', '', 'URDF of the controller\'s model ("" = urdf); the controller node must run it',
@@ -243,6 +253,11 @@ def parameters_of(node: str) -> tuple[NodeParameter, ...]:
     if node not in NODES:
         raise ValueError(f'no node {node!r}: one of {NODES}')
     return tuple(parameter for parameter in SCHEMA if node in parameter.nodes and parameter not in JOINT_GAINS)
+
+
+def aliases(node: str) -> dict[str, str]:
+    """The deprecated names `node` still takes, each with the name it is read as."""
+    return {parameter.name: parameter.alias_of for parameter in parameters_of(node) if parameter.alias_of}
 
 
 def read_only(node: str) -> frozenset[str]:

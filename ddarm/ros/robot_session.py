@@ -81,7 +81,7 @@ def controller_node_parameters(spec: EpisodeSpec, mode: str) -> dict:
     urdf = spec.model_urdf or spec.urdf
     parameters = {'urdf': str(Path(urdf).resolve()) if urdf else '', 'motion': str(Path(spec.motion).resolve()),
                   'duration': float(spec.duration), 'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0,
-                  'compute_delay_steps': spec.delay, 'period': spec.period, 'sampling': 'timer',
+                  'delay': spec.delay, 'period': spec.period, 'sampling': 'timer',
                   'command_type': 'float64_multi_array', 'command_topic': ROBOT_COMMANDS_TOPIC.lstrip('/'),
                   'clamp_efforts': False, 'use_sim_time': mode == 'lockstep'}
     parameters.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')

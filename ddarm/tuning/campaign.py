@@ -28,6 +28,7 @@ from matplotlib.figure import Figure
 
 from ddarm.control.gains import SEARCH_START_OMEGAS
 from ddarm.control.laws import CONTROLLERS
+from ddarm.deprecation import renamed_keys
 from ddarm.episodes.indices import INDICES, PAPER_EQUATIONS
 from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec, arm_joints, check_episode
 from ddarm.errors import DdarmError
@@ -45,12 +46,14 @@ from ddarm.tuning.tune import Tuning, tune, with_gains
 
 # The options of `ddarm tune` a campaign sets for all its jobs (at the top) or for one (in a listed job).
 OPTION_KEYS = ('index', 'method', 'budget', 'seed', 'omegas', 'period', 'delay', 'torque_limit', 'substeps')
-PRODUCT_KEYS = ('arms', 'motions', 'laws', 'scenarios')
+PRODUCT_KEYS = ('arms', 'motions', 'controllers', 'scenarios')
 TOP_KEYS = ('description', *PRODUCT_KEYS, 'jobs', *OPTION_KEYS)
 ARM_KEYS = ('name', 'urdf', 'model_urdf')
 MOTION_KEYS = ('name', 'trajectory', 'file', 'duration')
 SCENARIO_KEYS = ('name', 'tau', 'mass_scale', 'external_torque', 'viscous_friction', 'coulomb_friction')
-JOB_KEYS = ('name', 'arm', 'motion', 'law', 'scenario', *OPTION_KEYS)
+JOB_KEYS = ('name', 'arm', 'motion', 'controller', 'scenario', *OPTION_KEYS)
+# Deprecated keys, each with the one it is read as (the episode's name for the law).
+TOP_RENAMED, JOB_RENAMED = {'laws': 'controllers'}, {'law': 'controller'}
 # A name becomes part of a job's name and so of its bag's and gains file's names: one plain word each.
 NAME = re.compile(r'[A-Za-z0-9][A-Za-z0-9_+-]*')
 # The longest file name made from a job's name (its bag's MCAP storage file, its gains file <name>.yaml): within
@@ -78,7 +81,7 @@ class CampaignJob:
     name: str
     arm: str
     motion: str
-    law: str
+    controller: str
     scenario: str
     template: EpisodeSpec
     index: str
@@ -271,7 +274,7 @@ class _Reader:
             self.fail(where, 'a scenario that changes the episode needs a name')
         return {'name': self.name(f'{where}.name', data.get('name', 'nominal')), **scenario}
 
-    def law(self, where: str, value) -> str:
+    def controller(self, where: str, value) -> str:
         return self.choice(where, value, CONTROLLERS)
 
     def distinct(self, where: str, entries: list[dict]) -> None:
@@ -300,47 +303,52 @@ def parse_campaign(text: str, path: Path) -> Campaign:
     except yaml.YAMLError as error:  # on one line, as every refusal
         raise CampaignError(f'{path}: not a YAML file ddarm reads: {" ".join(str(error).split())}') from error
     if document is None:
-        raise CampaignError(f'{path}: empty: a campaign lists laws (with arms, motions, scenarios) and/or jobs')
+        raise CampaignError(f'{path}: empty: a campaign lists controllers (with arms, motions, scenarios) and/or jobs')
+    if isinstance(document, dict):
+        document = renamed_keys(document, TOP_RENAMED, f'{path}: the top level', CampaignError)
     document = reader.mapping('the top level', document, TOP_KEYS)
     description = document.get('description', '')
     if not isinstance(description, str):
         reader.fail('description', f'must be text, got {shown(description)}')
     shared = reader.options('', document)
-    if 'laws' not in document and any(key in document for key in ('arms', 'motions', 'scenarios')):
-        reader.fail('laws', 'arms, motions and scenarios make jobs only with laws: give laws')
-    if 'laws' not in document and 'jobs' not in document:
-        reader.fail('the top level', 'no jobs: give laws (with arms, motions and scenarios) and/or jobs')
+    if 'controllers' not in document and any(key in document for key in ('arms', 'motions', 'scenarios')):
+        reader.fail('controllers', 'arms, motions and scenarios make jobs only with controllers: give controllers')
+    if 'controllers' not in document and 'jobs' not in document:
+        reader.fail('the top level', 'no jobs: give controllers (with arms, motions and scenarios) and/or jobs')
     parts = []
     listed = reader.items('jobs', document['jobs']) if 'jobs' in document else []
-    if 'laws' in document:
+    if 'controllers' in document:
         axes = {key: (reader.items(key, document.get(key, default)), read) for key, read, default in (
             ('arms', reader.arm, [{}]), ('motions', reader.motion, [{'trajectory': 1}]), ('scenarios', reader.scenario,
                                                                                           [{}]))}
-        given_laws = reader.items('laws', document['laws'])
-        _check_job_count(reader, len(listed) + len(given_laws) * math.prod(len(items) for items, _ in axes.values()))
+        given_controllers = reader.items('controllers', document['controllers'])
+        product = len(given_controllers) * math.prod(len(items) for items, _ in axes.values())
+        _check_job_count(reader, len(listed) + product)
         for key, (given, read) in axes.items():
             entries = [read(f'{key}[{i}]', item) for i, item in enumerate(given)]
             reader.distinct(key, entries)
             axes[key] = entries
-        laws = [reader.law(f'laws[{i}]', law) for i, law in enumerate(given_laws)]
-        if len(set(laws)) != len(laws):
-            reader.fail('laws', f'a law is given twice: {laws}')
+        controllers = [reader.controller(f'controllers[{i}]', law) for i, law in enumerate(given_controllers)]
+        if len(set(controllers)) != len(controllers):
+            reader.fail('controllers', f'a controller is given twice: {controllers}')
         parts += [(f'the job {arm["name"]}.{motion["name"]}.{law}.{scenario["name"]} (of the product)',
                    None, arm, motion, law, scenario, {})
-                  for arm in axes['arms'] for motion in axes['motions'] for law in laws
+                  for arm in axes['arms'] for motion in axes['motions'] for law in controllers
                   for scenario in axes['scenarios']]
     _check_job_count(reader, len(listed))
     if 'jobs' in document:
         for i, item in enumerate(listed):
             where = f'jobs[{i}]'
+            if isinstance(item, dict):
+                item = renamed_keys(item, JOB_RENAMED, f'{path}: {where}', CampaignError)
             item = reader.mapping(where, item, JOB_KEYS)
-            if 'law' not in item:
-                reader.fail(where, f'no law: one of {", ".join(CONTROLLERS)}')
+            if 'controller' not in item:
+                reader.fail(where, f'no controller: one of {", ".join(CONTROLLERS)}')
             name = reader.name(f'{where}.name', item['name']) if 'name' in item else None
             parts.append((where, name, reader.arm(f'{where}.arm', item.get('arm', {})),
                           reader.motion(f'{where}.motion', item.get('motion', {'trajectory': 1})),
-                          reader.law(f'{where}.law', item['law']), reader.scenario(f'{where}.scenario',
-                                                                                   item.get('scenario', {})),
+                          reader.controller(f'{where}.controller', item['controller']),
+                          reader.scenario(f'{where}.scenario', item.get('scenario', {})),
                           reader.options(where, item)))
     jobs, warnings, seen = [], [], {}
     for where, name, arm, motion, law, scenario, options in parts:
@@ -365,7 +373,7 @@ def parse_campaign(text: str, path: Path) -> Campaign:
 
 def _check_job_count(reader: _Reader, count: int) -> None:
     if count > MAX_JOBS:
-        reader.fail('the top level', f'{count} jobs (arms × motions × laws × scenarios, and those listed), more '
+        reader.fail('the top level', f'{count} jobs (arms × motions × controllers × scenarios, and those listed), more '
                                      f'than the {MAX_JOBS} a campaign may run')
 
 
@@ -406,7 +414,9 @@ class EpisodeRecorder(Protocol):
 
 def job_record(job: CampaignJob) -> dict:
     """What defines the job, for summary.json: its parts, its search's options and its episode."""
-    return {'name': job.name, 'arm': job.arm, 'motion': job.motion, 'law': job.law, 'scenario': job.scenario,
+    # 'law' is the deprecated name of 'controller', kept so that scripts reading summary.json go on working.
+    return {'name': job.name, 'arm': job.arm, 'motion': job.motion, 'controller': job.controller,
+            'law': job.controller, 'scenario': job.scenario,
             'scenario_values': job.scenario_record,
             'scenario_text': f'{job.scenario}: {describe_scenario(job.template, len(arm_joints(job.template)[0]))}',
             'index': job.index, 'method': job.method, 'budget': job.budget,
@@ -564,12 +574,13 @@ def summary_table(campaign: Campaign, records: list[dict]) -> str:
         lines += [markdown_paragraph(campaign.description), '']
     lines += ['Every *bag* number is scored from the job\'s bag (`ddarm score <bag>` recomputes it); *search* is the '
               'value the search found in-process.', '',
-              '| job | arm | motion | law | scenario | index | search | bag | status |',
+              '| job | arm | motion | controller | scenario | index | search | bag | status |',
               '|---|---|---|---|---|---|---|---|---|']
     for record in records:
         bag = f"[{_cell(record['bag_index'])}]({quote(record['bag'])})" if 'bag' in record else '–'
         status = 'ok' if record['status'] == 'ok' else f"**FAILED**: {markdown_text(record['reason'])}"
-        cells = (markdown_text(record[key]) for key in ('name', 'arm', 'motion', 'law', 'scenario_text', 'index'))
+        cells = (markdown_text(record[key])
+                 for key in ('name', 'arm', 'motion', 'controller', 'scenario_text', 'index'))
         lines.append('| ' + ' | '.join((*cells, _cell(record.get('search_index')), bag, status)) + ' |')
     failed = failed_jobs(records)
     lines += ['', f'{len(records) - len(failed)} of {len(records)} jobs ok'
@@ -581,8 +592,8 @@ def summary_table(campaign: Campaign, records: list[dict]) -> str:
 def index_plot(path: Path, records: list[dict]) -> None:
     """Each job's index as its bag scores it, one bar per job grouped by law (log scale); a failed job's bar is
     missing and labelled FAILED."""
-    laws = sorted({record['law'] for record in records}, key=CONTROLLERS.index)
-    ordered = [record for law in laws for record in records if record['law'] == law]
+    laws = sorted({record['controller'] for record in records}, key=CONTROLLERS.index)
+    ordered = [record for law in laws for record in records if record['controller'] == law]
     figure = Figure(figsize=(max(6.0, 0.6 * len(ordered) + 2.0), 4.8), dpi=110)
     FigureCanvasAgg(figure)
     axis = figure.subplots()
@@ -591,7 +602,7 @@ def index_plot(path: Path, records: list[dict]) -> None:
     floor = min(scored) / 10 if scored else 1.0
     for position, record in enumerate(ordered):
         if record['status'] == 'ok':
-            axis.bar(position, record['bag_index'], color=colours.get(record['law'], 'tab:gray'))
+            axis.bar(position, record['bag_index'], color=colours.get(record['controller'], 'tab:gray'))
         else:
             axis.text(position, floor * 2, 'FAILED', rotation=90, ha='center', va='bottom', color='tab:red')
     for law in laws:
