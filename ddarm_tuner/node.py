@@ -124,8 +124,10 @@ class TunerNode(GraphDriver):
                 bag.close(complete=True)
             # The episode is on disk and closed: scoring it needs no ROS.
             scored = score_bag(path)
-            run.add_episode({'name': name, 'bag': str(path), **{key: scored[key] for key in (
-                *INDICES, 'diverged', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque', 'spec')}, 'graph_indices': result.indices()})
+            kept = (*INDICES, 'diverged', 'diverged_at', 'diverged_at_sample', 'max_abs_error_deg', 'max_abs_torque',
+                    'spec')
+            run.add_episode({'name': name, 'bag': str(path), **{key: scored[key] for key in kept},
+                             'graph_indices': result.indices()})
             self.get_logger().info(f"{name}: I1 {scored['I1']:.6g}  I2 {scored['I2']:.6g}  I {scored['I']:.6g}"
                                    f'  (scored from {path})')
 

@@ -591,7 +591,7 @@ def test_a_divergence_is_scored_on_the_samples_before_it(tmp_path):
         return t, ((), (), state[2]) if n == 3 else state  # the plant left its bounds during sample 2
 
     scored = score_bag(synthetic_bag(tmp_path / 'bag', change_state=diverge))
-    assert scored['diverged'] and scored['diverged_at_sample'] == 3 and scored['samples_scored'] == 3
+    assert scored['diverged'] and scored['diverged_at'] == 3 and scored['samples_scored'] == 3
     assert scored['I1'] == pytest.approx(3 * 3 * np.degrees(0.01) / 3)
 
 
@@ -623,7 +623,7 @@ def _beyond(field: int, value: float):
 @pytest.mark.parametrize('field, value', [(0, 150.0), (0, -1e300), (1, 2000.0), (1, -1000.5)])
 def test_a_state_beyond_the_plants_bounds_is_scored_as_a_divergence_there(tmp_path, field, value):
     scored = score_bag(synthetic_bag(tmp_path / 'bag', change_state=_beyond(field, value)))
-    assert scored['diverged'] and scored['diverged_at_sample'] == 2 and scored['samples_scored'] == 2
+    assert scored['diverged'] and scored['diverged_at'] == 2 and scored['samples_scored'] == 2
     assert scored['I1'] == pytest.approx(2 * 3 * np.degrees(0.01) / 3)
 
 

@@ -108,7 +108,8 @@ def test_a_diverging_episode_is_flagged_with_finite_numbers():
     result = run_episode(EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3, delay=1))
     assert result.diverged[0]
     summary = result.summary()
-    assert summary['diverged'] and 0 < summary['diverged_at_sample'] <= 100
+    assert summary['diverged'] and 0 < summary['diverged_at'] <= 100
+    assert summary['diverged_at_sample'] == summary['diverged_at']  # its deprecated name
     assert all(np.isfinite(summary[key]) for key in ('I1', 'I2', 'I'))
     assert np.all(np.isfinite(result.scored('q'))) and np.all(np.isfinite(result.scored('torque')))
 

@@ -73,7 +73,7 @@ def test_one_plant_node_ends_episodes_every_way_and_the_last_is_still_exact(ros_
         spin_until(graph.executor, lambda: listener.ends() == ['complete'])
 
         diverging = EpisodeSpec(controller='computed_torque', kp=(1e6,) * 3, kv=(3e3,) * 3)
-        assert graph.driver.run_episode(graph.executor, diverging).summary()['diverged_at_sample'] is not None
+        assert graph.driver.run_episode(graph.executor, diverging).summary()['diverged_at'] is not None
         spin_until(graph.executor, lambda: listener.ends()[-1:] == ['diverged'])
 
         # With the controller no longer spun, sample 0 goes unanswered.

@@ -51,7 +51,7 @@ def validate_json(capsys, tmp_path, gains: Path, mjcf: Path, *extra) -> dict:
 
 
 def compared(summary: dict) -> dict:
-    return {key: summary[key] for key in ('I1', 'I2', 'I', 'diverged', 'diverged_at_sample', 'samples_scored',
+    return {key: summary[key] for key in ('I1', 'I2', 'I', 'diverged', 'diverged_at', 'samples_scored',
                                           'max_abs_error', 'max_abs_torque', 'joint_names')}
 
 
@@ -244,7 +244,7 @@ def test_a_robot_that_diverges_says_so_beside_its_numbers(capsys, tmp_path, two_
     assert report['ratio'] == {'I1': None, 'I2': None, 'I': None}
     assert main(['validate', '--gains', str(gains), '--mjcf', str(mjcf), '--runs', str(tmp_path), '--run', 'text']) == 0
     out = capsys.readouterr().out
-    at = report['measured']['diverged_at_sample']
+    at = report['measured']['diverged_at']
     assert f'measured: DIVERGED at sample {at}' in out
     outcome = next(line for line in out.splitlines() if line.strip().startswith('outcome'))
     assert f'DIVERGED at sample {at}' in outcome

@@ -17,7 +17,7 @@ from ddarm.reporting.progress import Progress
 
 
 def add_campaign_parser(commands) -> None:
-    campaign = commands.add_parser('campaign', help='run a list of tunings (arms × motions × laws × scenarios) '
+    campaign = commands.add_parser('campaign', help='run a list of tunings (arms × motions × controllers × scenarios) '
                                                    'into one run folder and one summary')
     campaign.add_argument('file', metavar='FILE.yaml', help='the campaign file (docs/tuning.md: `ddarm campaign`)')
     campaign.add_argument('--out', metavar='DIR',

@@ -47,7 +47,7 @@ def print_summary(summary: dict) -> None:
     print(f"  kp = {format_vector(spec['kp'])}  kv = {format_vector(spec['kv'])}")
     print(f"  I1 (2.5) = {summary['I1']:.6g}   I2 = {summary['I2']:.6g}   I (3.2) = {summary['I']:.6g}")
     if summary['diverged']:
-        print(f"  DIVERGED at sample {summary['diverged_at_sample']}: indices cover the "
+        print(f"  DIVERGED at sample {summary['diverged_at']}: indices cover the "
               f"{summary['samples_scored']} samples before it")
     if summary['max_abs_error_deg'] is not None:
         print(f"  max |e| (deg) = {format_vector(summary['max_abs_error_deg'])}   "

@@ -93,7 +93,7 @@ def outcome(summary: dict, saturated: list[str]) -> str:
     """What happened on one side, in a few words for a table cell."""
     words = []
     if summary['diverged']:
-        words.append(f"DIVERGED at sample {summary['diverged_at_sample']}")
+        words.append(f"DIVERGED at sample {summary['diverged_at']}")
     if saturated:
         words.append(f'saturated ({len(saturated)} joint{"s" if len(saturated) > 1 else ""})')
     return ', '.join(words) or 'ran to T'
@@ -105,7 +105,7 @@ def side_notes(report: dict, period: float) -> list[str]:
     for side in SIDES:
         summary = report[side]
         if summary['diverged']:
-            at = summary['diverged_at_sample']
+            at = summary['diverged_at']
             notes.append(f"{side}: DIVERGED at sample {at} (t = {at * period:g} s): its indices and peaks (*) cover "
                          f"only the {summary['samples_scored']} samples before it; no ratio is formed from them")
         if report['saturated'][side]:

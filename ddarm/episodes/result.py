@@ -192,7 +192,8 @@ class Episodes:
             **self.indices(member),
             'joint_names': list(self.joint_names),
             'diverged': at >= 0,
-            'diverged_at_sample': at if at >= 0 else None,
+            'diverged_at': at if at >= 0 else None,
+            'diverged_at_sample': at if at >= 0 else None,  # the deprecated name of diverged_at, for old scripts
             'samples_scored': scored,
             'k_max': self.plan.k_max,
             **maxima,

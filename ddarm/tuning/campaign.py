@@ -1,4 +1,4 @@
-"""A campaign: many `ddarm tune` jobs (arms × motions × laws × scenarios, and/or listed jobs) from one YAML file,
+"""A campaign: many `ddarm tune` jobs (arms × motions × controllers × scenarios, and/or listed jobs) from one YAML file,
 their searches run as independent jobs, each job's best gains then recorded once as a bag and scored from it.
 
 The file is read strictly and every job is checked (its episode, its search's arguments) before any search
@@ -504,7 +504,7 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
                   saturated_joints=scored.get('saturated_joints', []))
     if scored['diverged']:
         return {**record, 'status': 'failed',
-                'reason': f'the recorded episode diverged at sample {scored["diverged_at_sample"]}'}
+                'reason': f'the recorded episode diverged at sample {scored["diverged_at"]}'}
     if not record['agree']:
         return {**record, 'status': 'failed',
                 'reason': f'the bag disagrees with the search: {job.index} = {scored[job.index]!r} from the bag, '
