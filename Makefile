@@ -29,6 +29,6 @@ $(BROWSER):
 test: $(BIN)/.installed $(BROWSER)
 	$(BIN)/python -m pytest -q
 
-# The pages of docs/ generated from the code (test/test_docs.py fails when they drift from it).
+# The pages of docs/ and the parameter files of config/ generated from the code (tests fail when they drift).
 docs: $(BIN)/.installed
 	$(BIN)/python -m ddarm.cli.docs

@@ -1,10 +1,11 @@
 """The generated pages of docs/: cli.md from `ddarm`'s argument parser (every command, its options, their
-defaults and help), ros-interface.md from the nodes themselves (topics, QoS, services, parameters).
+defaults and help), ros-interface.md from the nodes themselves (topics, QoS, services, parameters); and the
+parameter files config/*.yaml from the parameter schema (ddarm.ros.config_files).
 
-    .venv/bin/python -m ddarm.cli.docs        # rewrites both (make docs)
+    .venv/bin/python -m ddarm.cli.docs        # rewrites them all (make docs)
 
 Each page is read from what the code declares, never written by hand, so that it cannot drift from it;
-test_docs.py fails when a committed page differs from this output.
+test_docs.py (test_parameter_schema.py for config/) fails when a committed one differs from this output.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from ddarm.cli.main import build_parser
 from ddarm.control.laws import CONTROLLERS
+from ddarm.ros.config_files import write_all
 
 PAGE = Path(__file__).resolve().parents[2] / 'docs' / 'cli.md'
 
@@ -185,7 +187,8 @@ def main() -> int:
     PAGE.parent.mkdir(exist_ok=True)
     PAGE.write_text(cli_reference())
     ROS_PAGE.write_text(ros_interface())
-    print(f'{PAGE}: {len(_commands(build_parser()))} commands; {ROS_PAGE}')
+    configs = write_all()
+    print(f'{PAGE}: {len(_commands(build_parser()))} commands; {ROS_PAGE}; {", ".join(map(str, configs))}')
     return 0
 
 
