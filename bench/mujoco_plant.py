@@ -50,11 +50,11 @@ def main() -> None:
     parser.add_argument('--seconds', type=float, default=3.0)
     parser.add_argument('--json', action='store_true')
     args = parser.parse_args()
-    template = EpisodeSpec(controller='computed_torque', kp=(1.0,), kv=(1.0,),
+    template = EpisodeSpec(controller='computed_torque',
                            urdf=str(ROOT / 'config/arms/panda/panda.urdf'),
                            motion=str(ROOT / 'config/arms/panda/panda-motion.yaml'))
     kp, kv = gains_from_omega(template, 15.0)
-    spec = dataclasses.replace(template, kp=tuple(kp), kv=tuple(kv))
+    spec = template.with_gains(kp, kv)
     robot = dataclasses.replace(spec, mjcf=str(ROOT / 'config/robots/panda/panda.xml'))
     plan, robot_plan = check_episode(spec), check_episode(robot)
     chain = plant_chain(spec)

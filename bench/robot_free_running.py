@@ -12,7 +12,6 @@ run's I1, I2 and I, what the nodes counted (late periods, stale ticks, timeouts)
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import tempfile
@@ -36,10 +35,10 @@ def main() -> None:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     from ddarm.ros.robot_session import counted_faults, record_robot_episode
 
-    template = EpisodeSpec(controller='computed_torque', kp=(1.0,), kv=(1.0,), urdf=str(PANDA / 'panda-menagerie.urdf'),
+    template = EpisodeSpec(controller='computed_torque', urdf=str(PANDA / 'panda-menagerie.urdf'),
                            motion=str(PANDA / 'panda-motion.yaml'), mjcf=str(PANDA / 'panda.xml'))
     kp, kv = gains_from_omega(template, args.omega)
-    spec = dataclasses.replace(template, kp=tuple(kp), kv=tuple(kv))
+    spec = template.with_gains(kp, kv)
     in_process = run_episode(spec).indices()
     runs = []
     with tempfile.TemporaryDirectory(prefix='ddarm-bench-') as folder:

@@ -13,7 +13,6 @@ Rounds alternate (a) and (b); "× real time" is samples/s × Δ (Δ = 0.01 s).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import subprocess
@@ -100,11 +99,11 @@ def main() -> None:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     from ddarm.ros.session import GraphSession
 
-    template = EpisodeSpec(controller='computed_torque', kp=(1.0,), kv=(1.0,), urdf=str(PANDA / 'panda-menagerie.urdf'),
+    template = EpisodeSpec(controller='computed_torque', urdf=str(PANDA / 'panda-menagerie.urdf'),
                            motion=str(PANDA / 'panda-motion.yaml'), mjcf=str(PANDA / 'panda.xml'),
                            duration=args.seconds)
     kp, kv = gains_from_omega(template, 15.0)
-    spec = dataclasses.replace(template, kp=tuple(kp), kv=tuple(kv))
+    spec = template.with_gains(kp, kv)
     plan = check_episode(spec)
     rounds = []
     with tempfile.TemporaryDirectory(prefix='ddarm-bench-') as folder, \

@@ -206,3 +206,17 @@ def test_more_samples_than_the_plan_or_other_joints_are_refused():
     two_joints = {key: result.scored(key)[:, :2] for key in ('q', 'v', 'command', 'torque')}
     with pytest.raises(RecordingError, match=r'shape \(samples, 3\)'):
         Episodes.from_samples(result.template, result.plan, **two_joints)
+
+
+def test_an_episode_without_gains_is_a_template_checked_but_never_run():
+    from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode
+
+    template = EpisodeSpec(controller='computed_torque', trajectory=2, delay=0)
+    assert template.is_template and template.to_dict()['kp'] is None
+    check_episode(template)  # everything but the gains
+    with pytest.raises(EpisodeError, match='template has no gains'):
+        run_episode(template)
+    spec = template.with_gains([225.0] * 3, [30.0] * 3)
+    assert not spec.is_template and spec.kp == (225.0,) * 3 and spec.template() == template
+    assert run_episode(spec).indices() == run_episode(EpisodeSpec(
+        controller='computed_torque', kp=(225.0,) * 3, kv=(30.0,) * 3, trajectory=2, delay=0)).indices()

@@ -18,7 +18,7 @@ from ddarm.ros.interface import flat_parameters, given_gains
 from ddarm.tuning.methods import DEFAULT_METHOD
 from ddarm.tuning.methods import ParetoError
 from ddarm.tuning.pareto import pareto_front, spread_points
-from ddarm.tuning.tune import tune, with_gains
+from ddarm.tuning.tune import tune
 
 # The paper's arm and trajectory 1 over half its T, small budgets: a front in a few seconds.
 DURATION = 0.5
@@ -92,7 +92,7 @@ def test_the_ends_reach_the_single_index_optima_of_the_tune_search(front_run):
 
 def test_every_point_re_run_alone_gives_its_reported_indices(front_run):
     for point in front_run[0]['front']:
-        episode = run_episode(with_gains(TEMPLATE, point['kp'], point['kv']))
+        episode = run_episode(TEMPLATE.with_gains(point['kp'], point['kv']))
         assert not episode.diverged[0]
         assert (float(episode.I1[0]), float(episode.I2[0])) == (point['I1'], point['I2'])
 
@@ -150,7 +150,7 @@ def test_an_existing_yaml_dir_with_files_is_refused_and_left_alone(capsys, tmp_p
 
 def test_the_core_keeps_its_seeds_and_refuses_what_it_cannot_run():
     seed_kp, seed_kv = (900.0, 1300.0, 1300.0), (45.0, 55.0, 55.0)
-    seeded = run_episode(with_gains(TEMPLATE, seed_kp, seed_kv))
+    seeded = run_episode(TEMPLATE.with_gains(seed_kp, seed_kv))
     result = pareto_front(TEMPLATE, budget=101, seeds=[(seed_kp, seed_kv)], searches=0, points=1000)
     # Nothing evaluated is lost: the seed, as given, is a point of the front, or a point of the front dominates it.
     on_front = ((float(seeded.I1[0]), float(seeded.I2[0])) in [(point.I1, point.I2) for point in result.front])

@@ -168,9 +168,10 @@ def absolute_path(text: str | None) -> str | None:
 
 
 def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
-    """The episode the options define; gains from --omega (the ω rule) or --kp/--kv, else placeholders."""
+    """The episode the options define; gains from --omega (the ω rule) or --kp/--kv; a template (no gains) for the
+    commands that choose the gains themselves."""
     spec = EpisodeSpec(
-        controller=args.controller, kp=(1.0,), kv=(1.0,), trajectory=args.trajectory or 1, duration=args.duration,
+        controller=args.controller, trajectory=args.trajectory or 1, duration=args.duration,
         period=args.period, delay=args.delay, tau=args.tau, torque_limit=torque_limit(args),
         external_torque=args.external_torque, viscous_friction=args.viscous_friction,
         coulomb_friction=args.coulomb_friction, mass_scale=args.mass_scale, substeps=args.substeps,
@@ -178,9 +179,9 @@ def episode_spec(args: argparse.Namespace) -> EpisodeSpec:
     if getattr(args, 'mjcf', None) or getattr(args, 'joint_map', None):
         spec = dataclasses.replace(spec, mjcf=absolute_path(args.mjcf),
                                    mjcf_joints=robot_joints(args, arm_joints(spec)[0]))
-    if not hasattr(args, 'omega'):  # commands that choose the gains themselves start from a placeholder
-        kp = kv = (1.0,) * len(arm_joints(spec)[0])
-    elif args.omega is not None:
+    if not hasattr(args, 'omega'):
+        return spec
+    if args.omega is not None:
         if args.kv is not None:
             raise EpisodeError('--kv goes with --kp; --omega sets both gains from the ω rule')
         kp, kv = gains_from_omega(spec, args.omega)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ddarm.cli.arguments import episode_spec
 from ddarm.cli.output import format_vector, print_json
-from ddarm.episodes.spec import EpisodeError, check_episode, loop_stability_warnings
+from ddarm.episodes.spec import EpisodeError, arm_joints, check_episode, loop_stability_warnings
 from ddarm.physics.plant import DEFAULT_MAX_POSITION
 
 
@@ -25,7 +25,7 @@ def command_omega(args: argparse.Namespace) -> int:
         raise EpisodeError('give --disturbance or --external-torque, not both')
     check_outputs(args.out, args.runs, args.run)
     spec = episode_spec(args)
-    dof = len(spec.kp)
+    dof = len(arm_joints(spec)[0])
     for name, values in (('--max-error', args.max_error), ('--disturbance', args.disturbance),
                          ('--mass-error', args.mass_error)):
         if values is not None and len(values) != dof and not (name == '--max-error' and len(values) == 1):
@@ -44,7 +44,7 @@ def command_omega(args: argparse.Namespace) -> int:
     permitted = np.where(prismatic, np.asarray(args.max_error) * 1e-3, np.radians(args.max_error))
     choice = omega_procedure(spec, permitted, args.torque_factor, args.omega_step, args.omega_max)
     stability_warnings = () if choice.omega is None else tuple(loop_stability_warnings(
-        dataclasses.replace(spec, kp=tuple(choice.kp), kv=tuple(choice.kv)),
+        spec.with_gains(choice.kp, choice.kv),
         f'the gains of the chosen ω = {choice.omega:.6g}'))
     with run_folder('omega', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
         report = finish_omega(run, spec, plan, choice, args.out, (*plan.warnings, *stability_warnings))

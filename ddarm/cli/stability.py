@@ -35,7 +35,7 @@ def _pd_gravity_modes(args: argparse.Namespace) -> tuple[list[str], np.ndarray]:
     at the goal q_f of the motion."""
     from ddarm.episodes.spec import EpisodeSpec, episode_motion, model_arm, plant_arm
 
-    spec = EpisodeSpec(controller='pd_gravity', kp=(1.0,), kv=(1.0,), trajectory=args.trajectory or 1,
+    spec = EpisodeSpec(controller='pd_gravity', trajectory=args.trajectory or 1,
                        urdf=absolute_path(args.urdf), model_urdf=absolute_path(args.model_urdf),
                        motion=absolute_path(args.motion))
     goal = episode_motion(spec).qf

@@ -89,11 +89,10 @@ def _tuned_gains(args: argparse.Namespace, run, template: EpisodeSpec, phase: st
     """The search on `template` (_tuned) and its gains written to the run folder as `<phase>.yaml`, as `ddarm tune
     --out` writes them: the YAML's path and the tuning."""
     from ddarm.tuning.outputs import write_gains
-    from ddarm.tuning.tune import with_gains
 
     tuning = _tuned(args, template, f'{phase} search', scenarios)
     kp, kv = tuning.search.kp, tuning.search.kv
-    (path, *_) = write_gains(run, kp, kv, with_gains(template, kp, kv),
+    (path, *_) = write_gains(run, kp, kv, template.with_gains(kp, kv),
                              f'{args.index} = {tuning.best[args.index]!r} on {template.urdf}\nfrom: {command}',
                              name=f'{phase}.yaml')
     return Path(path), tuning
@@ -127,7 +126,6 @@ def _identified(urdf: str, fit: Path, check: Path, out: Path, command: str, samp
 def command_transfer(args: argparse.Namespace) -> int:
     from ddarm.tuning.outputs import check_outputs, run_folder
     from ddarm.tuning.transfer import improvement, verdict, write_transfer_page
-    from ddarm.tuning.tune import with_gains
 
     if args.budget < 1:
         raise EpisodeError(f'--budget must be a positive number of episodes, got {args.budget}')
@@ -138,10 +136,8 @@ def command_transfer(args: argparse.Namespace) -> int:
     command = shlex.join(['ddarm', *args.argv])
     # Every refusal before the searches: the URDF and the motion, the robot against the motion's joints, the
     # excitation (a few seconds, and the one step that needs the URDF's limits), the run folder.
-    template = EpisodeSpec(controller=args.controller, kp=(1.0,), kv=(1.0,), urdf=absolute_path(args.urdf),
-                           motion=absolute_path(args.motion))
+    template = EpisodeSpec(controller=args.controller, urdf=absolute_path(args.urdf), motion=absolute_path(args.motion))
     joints = arm_joints(template)[0]
-    template = dataclasses.replace(template, kp=(1.0,) * len(joints), kv=(1.0,) * len(joints))
     robot = dict(mjcf=absolute_path(args.mjcf), mjcf_joints=robot_joints(args, joints))
     if robot['mjcf'] is None:
         raise EpisodeError('--mjcf FILE is required: the robot (an MJCF, or a URDF MuJoCo compiles) the gains are '
@@ -163,7 +159,7 @@ def command_transfer(args: argparse.Namespace) -> int:
         # 3, 4. the excitation recorded on the robot through the graph, twice
         excite_spec = dataclasses.replace(template, motion=str(excite.absolute()), duration=None, **robot)
         kp, kv = gains_from_omega(excite_spec, EXCITATION_OMEGA)
-        excite_spec = with_gains(excite_spec, kp, kv)
+        excite_spec = excite_spec.with_gains(kp, kv)
         from ddarm.ros.session import run_graph_episode  # ROS only once the searches it does not need are done
 
         bags = {}

@@ -66,7 +66,7 @@ def robust_scenarios(args: argparse.Namespace, template):
 
 def command_tune(args: argparse.Namespace) -> int:
     from ddarm.tuning.outputs import check_outputs, finish_tuning, run_folder
-    from ddarm.tuning.tune import tune, with_gains
+    from ddarm.tuning.tune import tune
 
     check_outputs(args.out, args.runs, args.run)
     template = episode_spec(args)
@@ -94,7 +94,7 @@ def command_tune(args: argparse.Namespace) -> int:
         best_gains, 'the tuned gains')))
     # Only now: a refused search leaves nothing behind.
     with run_folder('tune', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
-        best_spec = with_gains(template, tuning.search.kp, tuning.search.kv)
+        best_spec = template.with_gains(tuning.search.kp, tuning.search.kv)
         if progress:
             best = args.index if scenarios is None else f'{objective} {args.index} over the scenarios'
             print(f'best {best} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '

@@ -349,6 +349,8 @@ def simulate_batch(template: EpisodeSpec, kp, kv, *, tau=None, torque_limit=None
 def run_episode(spec: EpisodeSpec, plan: EpisodePlan | None = None) -> Episodes:
     """One episode in-process (spec §5), with its series: a batch of one, or on an MJCF robot (spec.mjcf) the
     stepwise loop against MuJoCo."""
+    if spec.is_template:
+        raise EpisodeError('an episode template has no gains to run with: give it its gains (with_gains)')
     plan = plan if plan is not None else check_episode(spec)
     try:
         kp, kv = checked_gains(spec.kp, spec.kv, plan.q_ref.shape[1])

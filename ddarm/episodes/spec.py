@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import MISSING, asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, fields, replace
 from functools import lru_cache
 
 import numpy as np
@@ -43,11 +43,16 @@ def _optional_tuple(values) -> tuple[float, ...] | None:
 
 @dataclass(frozen=True)
 class EpisodeSpec:
-    """Everything that defines an episode; its defaults are the spec's (§14; and the user's delay of 1)."""
+    """Everything that defines an episode; its defaults are the spec's (§14; and the user's delay of 1).
+
+    Without kp and kv it is a template: the episode but its gains, which a search, a campaign job or a command that
+    chooses the gains starts from; `with_gains` makes the episode. A template is checked for all but its gains, and
+    never run.
+    """
 
     controller: str
-    kp: tuple[float, ...]
-    kv: tuple[float, ...]
+    kp: tuple[float, ...] | None = None  # K_p diagonal, in the motion's joint order; None: a template
+    kv: tuple[float, ...] | None = None  # K_v diagonal, likewise
     trajectory: int = 1  # the paper's motion, when no motion file is given
     duration: float | None = None  # T; None: the motion's own (a bang-bang motion is stretched to T)
     period: float = 0.01
@@ -116,6 +121,18 @@ class EpisodeSpec:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @property
+    def is_template(self) -> bool:
+        return self.kp is None and self.kv is None
+
+    def with_gains(self, kp, kv) -> EpisodeSpec:
+        """The episode of this template (or spec) with these gains."""
+        return replace(self, kp=tuple(np.asarray(kp, dtype=float)), kv=tuple(np.asarray(kv, dtype=float)))
+
+    def template(self) -> EpisodeSpec:
+        """This episode without its gains."""
+        return replace(self, kp=None, kv=None)
 
 
 # The episode's defaults, by field: what the CLI, campaign files, controller YAMLs and the nodes' parameters
@@ -480,11 +497,13 @@ def plant_options(spec: EpisodeSpec, plan: EpisodePlan, dof: int) -> PlantOption
 
 
 def check_episode(spec: EpisodeSpec) -> EpisodePlan:
-    """Plan `spec` and check everything a run would refuse (gains, per-joint options), before any work starts."""
+    """Plan `spec` and check everything a run would refuse (gains, per-joint options), before any work starts; a
+    template's all but its gains."""
     plan = plan_episode(spec)
     dof = plan.q_ref.shape[1]
     try:
-        checked_gains(spec.kp, spec.kv, dof)
+        if not spec.is_template:
+            checked_gains(spec.kp, spec.kv, dof)
         plant_options(spec, plan, dof)
         if spec.mass_scale is not None:
             checked_mass_scale(spec.mass_scale, dof)

@@ -42,7 +42,7 @@ from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 from ddarm.tuning.outputs import AGREEMENT, relative_difference, write_gains
 from ddarm.tuning.robust import describe_scenario, scenario_record
 from ddarm.tuning.search import SearchError, check_search, omega_starts
-from ddarm.tuning.tune import Tuning, tune, with_gains
+from ddarm.tuning.tune import Tuning, tune
 
 # The options of `ddarm tune` a campaign sets for all its jobs (at the top) or for one (in a listed job).
 OPTION_KEYS = ('index', 'method', 'budget', 'seed', 'omegas', 'period', 'delay', 'torque_limit', 'substeps')
@@ -74,7 +74,7 @@ class CampaignError(DdarmError, ValueError):
 class CampaignJob:
     """One tuning of a campaign: what `ddarm tune` would do with these options.
 
-    `template` is the episode (its gains placeholders), `arm`, `motion` and `scenario` the names of its parts, and
+    `template` is the episode but its gains, `arm`, `motion` and `scenario` the names of its parts, and
     `scenario_record` the scenario's τ, mass scale and P^z (ddarm.tuning.robust.scenario_record).
     """
 
@@ -385,7 +385,7 @@ def _job(reader: _Reader, where: str, name: str | None, arm: dict, motion: dict,
     plant = {key: value for key, value in scenario.items() if key != 'name'}
     try:
         template = EpisodeSpec(
-            controller=law, kp=(1.0,), kv=(1.0,), trajectory=motion.get('trajectory', EPISODE_DEFAULTS['trajectory']),
+            controller=law, trajectory=motion.get('trajectory', EPISODE_DEFAULTS['trajectory']),
             duration=motion.get('duration'), urdf=arm.get('urdf'), model_urdf=arm.get('model_urdf'),
             motion=motion.get('file'),
             **{key: options.get(key, EPISODE_DEFAULTS[key]) for key in ('period', 'delay', 'torque_limit',
@@ -395,7 +395,7 @@ def _job(reader: _Reader, where: str, name: str | None, arm: dict, motion: dict,
         mass_scale = plant.get('mass_scale')
         if mass_scale is not None and len(mass_scale) == 1:
             mass_scale = mass_scale * dof  # one number scales every link, as `ddarm tune --robust-mass-scale` reads it
-        template = dataclasses.replace(template, kp=(1.0,) * dof, kv=(1.0,) * dof, mass_scale=mass_scale)
+        template = dataclasses.replace(template, mass_scale=mass_scale)
     except DdarmError as error:
         reader.fail(where, str(error))
     return CampaignJob(name or f'{arm["name"]}.{motion["name"]}.{law}.{scenario["name"]}', arm['name'],
@@ -430,7 +430,7 @@ def search_record(job: CampaignJob, found: JobSearch) -> dict:
     if found.tuning is None:
         return {**record, 'status': 'failed', 'reason': f'search: {found.error}'}
     tuning = found.tuning
-    spec = with_gains(job.template, tuning.search.kp, tuning.search.kv)
+    spec = job.template.with_gains(tuning.search.kp, tuning.search.kv)
     record.update(kp=tuning.search.kp.tolist(), kv=tuning.search.kv.tolist(),
                   gains={name: {'p': p, 'd': d} for name, p, d in zip(record['joint_names'], tuning.search.kp.tolist(),
                                                                      tuning.search.kv.tolist())},
@@ -485,7 +485,7 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
     if record['status'] == 'failed':
         return record
     tuning = found.tuning
-    spec = with_gains(job.template, tuning.search.kp, tuning.search.kv)
+    spec = job.template.with_gains(tuning.search.kp, tuning.search.kv)
     bag = run.bag_path(job.name)
     try:
         _, scored = recorder.record_and_score(spec, bag, command=run.summary['command'], storage=storage)

@@ -81,7 +81,7 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
         # Refused before the nominal search is spent; the first start stands in for its optimum, not known yet.
         check_search(template, start_kp=np.vstack([start_kp, start_kp[:1]]),
                      start_kv=np.vstack([start_kv, start_kv[:1]]), scenarios=scenarios, aggregate=aggregate, **search)
-    start_indices = [run_episode(with_gains(template, kp, kv)).indices()[index]
+    start_indices = [run_episode(template.with_gains(kp, kv)).indices()[index]
                      for kp, kv in zip(start_kp, start_kv)]
     if scenarios is not None:
         nominal, nominal_wall = _timed_search(template, start_kp=start_kp, start_kv=start_kv, seed=seed, **search)
@@ -95,7 +95,7 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
     robust = None if scenarios is None else Robustness(
         tuple(scenarios), aggregate, scenario_scores(scenarios, result.kp, result.kv, index),
         scenario_scores(scenarios, nominal.kp, nominal.kv, index), nominal, nominal_wall)
-    episode = run_episode(with_gains(template, result.kp, result.kv))
+    episode = run_episode(template.with_gains(result.kp, result.kv))
     warnings = episode.plan.warnings
     if method == 'global' and result.evolution_generations == 0:
         warnings += (f'the budget ({budget} episodes{f" over {len(scenarios)} scenarios" if scenarios else ""}) left '
@@ -103,7 +103,7 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
                      'basins may have been missed; raise --budget',)
     rate = None
     if measure_batch_rate:
-        rate = batch_rates(with_gains(template, result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
+        rate = batch_rates(template.with_gains(result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust,
                   rate)
 
