@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
+from ddarm.deprecation import DeprecatedName
 from ddarm.paper.claims import judge_claims
 from ddarm.paper.schema import (SCHEMA_VERSION, Claim, GainSet, OmegaProcedureRow, Results, ResultsError, StabilityRow,
                                 TauRow)
@@ -55,7 +56,7 @@ def test_the_settings_hold_what_the_code_held():
         assert [settings.table2_figure(controller, limited, tau) for tau in TAUS] == list(figures)
     for controller, figures in TABLE3.items():
         assert [settings.table3_figure(controller, tau) for tau in TAUS] == list(figures)
-    assert [(case.trajectory, case.T, case.period) for case in settings.table4_cases] == list(TABLE4_CASES)
+    assert [(case.trajectory, case.duration, case.period) for case in settings.table4_cases] == list(TABLE4_CASES)
     for (controller, *case), (index, first, second) in TABLE4.items():
         figures = settings.table4_figures(controller, Case(*case))
         assert (figures.I, figures.I1, figures.I2) == (index, first, second)
@@ -111,8 +112,9 @@ def _edit(document: dict, key: str, value) -> None:
     ('table3.computed_torque', [0.072] * 12, 'table3.computed_torque has 12 figures'),
     ('budgets.quick.taus', [0.0, 0.055], 'budgets.quick.taus [0.055]'),
     ('case.trajectory', 3, 'case.trajectory must be one of [1, 2], got 3'),
-    ('case.period', 0.005, 'case Case(trajectory=1, T=1.0, period=0.005) must be one of the table4 cases'),
-    ('tracking_case.T', 2.0, 'tracking_case Case(trajectory=1, T=2.0, period=0.01) must be one of the table4'),
+    ('case.period', 0.005, 'case Case(trajectory=1, duration=1.0, period=0.005) must be one of the table4 cases'),
+    ('tracking_case.duration', 2.0,
+     'tracking_case Case(trajectory=1, duration=2.0, period=0.01) must be one of the table4'),
     ('table4[3].case.trajectory', 7, 'table4[3].case.trajectory must be one of [1, 2]'),
     ('table4[1].paper.computed_torque.I2', ..., "missing key 'table4[1].paper.computed_torque.I2'"),
     ('table4[2].paper.pd_gravity', ..., "missing key 'table4[2].paper.pd_gravity'"),
@@ -126,10 +128,11 @@ def _edit(document: dict, key: str, value) -> None:
      'stability.periods[2]: duration 1.0 s is not a whole number of sampling periods 0.03 s'),
     ('stability.periods', [0.005, 0.01, 0.01], "the stability.periods give two episodes the bag name(s) ['dt0.01']"),
     ('stability.periods', [0.01, -0.02], 'stability.periods[1] must be finite and positive, got -0.02'),
-    ('table4[2].case.T', 0.505, 'table4[2].case: duration 0.505 s is not a whole number of sampling periods 0.01 s'),
+    ('table4[2].case.duration', 0.505,
+     'table4[2].case: duration 0.505 s is not a whole number of sampling periods 0.01 s'),
     ('table4[1].case.period', 0.0, 'table4[1].case.period must be finite and positive, got 0.0'),
-    ('table4[3].case.T', float('inf'), 'table4[3].case.T must be finite and positive, got inf'),
-    ('table4[3].case', {'trajectory': 1, 'T': 1.0, 'period': 0.02},
+    ('table4[3].case.duration', float('inf'), 'table4[3].case.duration must be finite and positive, got inf'),
+    ('table4[3].case', {'trajectory': 1, 'duration': 1.0, 'period': 0.02},
      "the table4 cases give two episodes the bag name(s) ['traj1-T1-dt0.02']"),
     ('delays.computed_torque', 1000, 'delays.computed_torque: compute delay must be a whole number of samples in '
                                      '[0, 100], got 1000'),
@@ -148,8 +151,9 @@ def _edit(document: dict, key: str, value) -> None:
     ('budgets.quick.search_episodes', 9, 'budgets.quick.search_episodes must be at least 10, got 9'),
     ('budgets.quick.robust_episodes', 43, 'budgets.quick.robust_episodes must be at least 44, got 43'),
     ('budgets.full.pareto_episodes', 101, 'budgets.full.pareto_episodes must be at least 102, got 101'),
-    ('beyond.case', {'trajectory': 2, 'T': 1.0, 'period': 0.01},
-     'beyond.case Case(trajectory=2, T=1.0, period=0.01) must be case Case(trajectory=1, T=1.0, period=0.01)'),
+    ('beyond.case', {'trajectory': 2, 'duration': 1.0, 'period': 0.01},
+     'beyond.case Case(trajectory=2, duration=1.0, period=0.01) must be case Case(trajectory=1, duration=1.0, '
+     'period=0.01)'),
     ('beyond.robust.taus', [0.0, 2.0], 'beyond.robust.taus: 2.0 must be within [0, T = 1] s'),
     ('beyond.robust.mass_scales', [1.0, 1.0], 'beyond.robust.mass_scales must hold at least one value, none twice'),
     ('beyond.stability_map.zetas', [0.0], 'beyond.stability_map.zetas must be finite and positive'),
@@ -172,6 +176,20 @@ def test_bad_settings_are_refused_naming_the_file_and_the_key(tmp_path, key, val
     assert str(refused.value).startswith(f'{path}: ') and named in str(refused.value), str(refused.value)
 
 
+def test_a_settings_file_with_a_cases_old_key_T_reads_it_as_duration(tmp_path):
+    path = tmp_path / 'settings.yaml'
+    path.write_text(SETTINGS_PATH.read_text().replace('duration: ', 'T: '))
+    with pytest.warns(DeprecatedName) as notices:
+        assert load_settings(path) == paper_settings()
+    cases = ['case', 'tracking_case', 'beyond.case'] + [f'table4[{i}].case' for i in range(4)]
+    assert sorted(str(notice.message) for notice in notices) == sorted(
+        f"{path}: {case}: 'T' is deprecated, read as 'duration' (give 'duration' instead)" for case in cases)
+    path.write_text(SETTINGS_PATH.read_text().replace('duration: 0.5,', 'duration: 0.5, T: 1.0,'))
+    with pytest.raises(SettingsError, match=r'table4\[2\]\.case: duration given twice, as duration \(0\.5\) and by its '
+                                            r'deprecated name T \(1\.0\)'):
+        load_settings(path)
+
+
 def test_a_settings_key_given_twice_is_refused(tmp_path):
     path = tmp_path / 'settings.yaml'
     path.write_text(SETTINGS_PATH.read_text() + '\ndelays: {pd_gravity: 1, computed_torque: 1}\n')
@@ -185,7 +203,7 @@ def test_the_settings_file_as_written_loads_as_the_default():
 
 def test_a_case_on_a_trajectory_without_a_motion_file_is_refused(tmp_path):
     document = yaml.safe_load(SETTINGS_PATH.read_text())
-    document['table4'].append({'case': {'trajectory': 9, 'T': 1.0, 'period': 0.01},
+    document['table4'].append({'case': {'trajectory': 9, 'duration': 1.0, 'period': 0.01},
                                'paper': document['table4'][0]['paper']})
     path = tmp_path / 'settings.yaml'
     path.write_text(yaml.safe_dump(document, allow_unicode=True))
@@ -241,7 +259,8 @@ def _episode(i1: float, within: bool = True, bag: str = 'bags/x') -> dict:
 def results_json() -> dict:
     """A results.json in the schema, every part present, with numbers the claims can be judged from."""
     gains = [{'name': f'{controller}-{index}-traj{t}-T{d:g}-dt{p:g}', 'controller': controller, 'index': index,
-              'trajectory': t, 'T': d, 'period': p, 'delay': delay, 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
+              'trajectory': t, 'duration': d, 'T': d, 'period': p, 'delay': delay, 'kp': [1.0, 2.0, 3.0],
+              'kv': [4.0, 5.0, 6.0],
               'search': {'episodes': 30, 'wall_time_s': 0.5, 'episodes_per_s': 60.0, 'in_process_index': 0.1,
                          'start_index': float('inf'), 'method': 'global', 'evolution_generations': 3,
                          'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
@@ -261,7 +280,7 @@ def results_json() -> dict:
     table3 = [{'controller': controller, 'tau': tau, 'limited': False, 'gains': f'{controller}-I-traj1-T1-dt0.01',
                **_episode(0.3 * (1.5 if tau else 1.0), within=tau == 0.0), 'paper': TABLE3[controller][TAUS.index(tau)]}
               for controller in CONTROLLERS for tau in (0.0, 0.1)]
-    table4 = [{'controller': controller, 'trajectory': t, 'T': d, 'period': p, 'delay': delay,
+    table4 = [{'controller': controller, 'trajectory': t, 'duration': d, 'T': d, 'period': p, 'delay': delay,
                'gains': f'{controller}-I-traj{t}-T{d:g}-dt{p:g}', 'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0],
                **_episode(i1), 'paper': dict(zip(('I', 'I1', 'I2'), TABLE4[(controller, t, d, p)]))}
               for t, d, p in TABLE4_CASES
@@ -304,13 +323,16 @@ def test_the_schema_has_the_documented_keys():
                                'reconstruction', 'claims', 'wall_time_s']
     assert fields[TauRow] == ['controller', 'tau', 'limited', 'gains', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque',
                               'torque_limit', 'within_limits', 'bag', 'paper']
-    assert fields[GainSet] == ['name', 'controller', 'index', 'trajectory', 'T', 'period', 'delay', 'kp', 'kv',
-                               'search']
+    assert fields[GainSet] == ['name', 'controller', 'index', 'trajectory', 'duration', 'period', 'delay', 'kp',
+                               'kv', 'search']
     assert fields[StabilityRow] == ['period', 'omega_max_stable', 'omega_15_stable', 'I1_at_omega_15',
                                     'diverged_at_omega_15', 'bag']
-    assert set(results_json()['table4'][0]) == {'controller', 'trajectory', 'T', 'period', 'delay', 'gains', 'kp',
-                                                'kv', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque', 'torque_limit',
-                                                'within_limits', 'bag', 'paper'}
+    written = Results.from_json(results_json()).to_json()
+    assert list(written['gains'][0]) == ['name', 'controller', 'index', 'trajectory', 'duration', 'T', 'period',
+                                         'delay', 'kp', 'kv', 'search']
+    assert set(written['table4'][0]) == {'controller', 'trajectory', 'duration', 'T', 'period', 'delay', 'gains', 'kp',
+                                         'kv', 'I1', 'I2', 'I', 'diverged', 'max_abs_torque', 'torque_limit',
+                                         'within_limits', 'bag', 'paper'}
 
 
 @pytest.mark.parametrize('edit, named', [
@@ -348,6 +370,21 @@ def test_results_off_the_schema_are_refused_naming_the_key(edit, named):
     with pytest.raises(ResultsError) as refused:
         Results.from_json(data, 'runs/x/results.json')
     assert str(refused.value).startswith('runs/x/results.json: ') and named in str(refused.value), str(refused.value)
+
+
+def test_results_of_before_duration_read_from_T_alone():
+    data = results_json()
+    for row in data['gains'] + data['table4']:
+        del row['duration']
+    assert Results.from_json(data) == Results.from_json(results_json())
+
+
+def test_a_duration_and_a_T_that_differ_are_refused():
+    data = results_json()
+    data['table4'][2]['T'] = 2.0
+    with pytest.raises(ResultsError,
+                       match=r'table4\[2\]\.duration is 1\.0 but its deprecated name table4\[2\]\.T is 2\.0'):
+        Results.from_json(data, 'runs/x/results.json')
 
 
 def test_results_are_written_with_their_schema_version_first():

@@ -56,8 +56,8 @@ def synthetic_results(scores: dict) -> dict:
     def bag(controller):
         return f'bags/{controller}'
 
-    gains = [{'name': f'{controller}-{index}', 'controller': controller, 'index': index, 'trajectory': 1, 'T': 1.0,
-              'period': 0.01, 'delay': DELAYS[controller], 'kp': list(GAINS[controller][0]),
+    gains = [{'name': f'{controller}-{index}', 'controller': controller, 'index': index, 'trajectory': 1,
+              'duration': 1.0, 'T': 1.0, 'period': 0.01, 'delay': DELAYS[controller], 'kp': list(GAINS[controller][0]),
               'kv': list(GAINS[controller][1]),
               'search': {'episodes': 600, 'wall_time_s': 0.5, 'episodes_per_s': 1200.0, 'in_process_index': 0.1,
                          'start_index': 4.0, 'method': 'global', 'evolution_generations': 3,
@@ -86,10 +86,10 @@ def synthetic_results(scores: dict) -> dict:
         for controller in CONTROLLERS:
             scored = scores[controller] if (trajectory, duration, period) == cases[0] else {
                 'I': 2.5, 'I1': 0.5, 'I2': 2.0}
-            table4.append({'controller': controller, 'trajectory': trajectory, 'T': duration, 'period': period,
-                           'delay': DELAYS[controller], 'gains': f'{controller}-I', 'kp': list(GAINS[controller][0]),
-                           'kv': list(GAINS[controller][1]), 'I': scored['I'], 'I1': scored['I1'],
-                           'I2': scored['I2'], **EPISODE, 'bag': bag(controller),
+            table4.append({'controller': controller, 'trajectory': trajectory, 'duration': duration,
+                           'T': duration, 'period': period, 'delay': DELAYS[controller], 'gains': f'{controller}-I',
+                           'kp': list(GAINS[controller][0]), 'kv': list(GAINS[controller][1]), 'I': scored['I'],
+                           'I1': scored['I1'], 'I2': scored['I2'], **EPISODE, 'bag': bag(controller),
                            'paper': {'I': 1.07, 'I1': 0.27, 'I2': 0.80} if controller == 'pd_gravity'
                            else {'I': 0.30, 'I1': 0.07, 'I2': 0.23}})
     section2 = {
@@ -112,14 +112,14 @@ def synthetic_results(scores: dict) -> dict:
                'evidence': 'limited at τ = 0.1: PD 0.4, CT 0.5'}]
     search = gains[0]['search']
     front = [{'I1': 0.07 + 0.01 * i, 'I2': 0.4 - 0.03 * i, 'kp': [900.0] * 3, 'kv': [60.0] * 3} for i in range(5)]
-    pareto = {'controller': 'computed_torque', 'trajectory': 1, 'T': 1.0, 'period': 0.01, 'delay': 1,
+    pareto = {'controller': 'computed_torque', 'trajectory': 1, 'duration': 1.0, 'T': 1.0, 'period': 0.01, 'delay': 1,
               'method': 'NSGA-II', 'episodes': 1000, 'wall_time_s': 2.0, 'front_size': 9, 'searches': 3,
               'searches_converged': 1, 'seeds': ['computed_torque-I1', 'computed_torque-I'],
               'seeds_on_front': [True, True], 'front': front}
     rows = [{'tau': tau, 'mass_scale': [scale] * 3, 'gains': name, 'I1': 0.1, 'I2': 0.3, 'I': 0.4 + tau,
              'diverged': False, 'bag': bag('computed_torque')}
             for tau in (0.0, 0.1) for scale in (0.8, 1.2) for name in ('robust', 'nominal')]
-    robust = {'controller': 'computed_torque', 'trajectory': 1, 'T': 1.0, 'period': 0.01, 'delay': 1,
+    robust = {'controller': 'computed_torque', 'trajectory': 1, 'duration': 1.0, 'T': 1.0, 'period': 0.01, 'delay': 1,
               'objective': 'worst', 'kp': [900.0] * 3, 'kv': [60.0] * 3, 'nominal': 'computed_torque-I',
               'search': search, 'rows': rows}
     stability_map = [{'delay': d, 'zeta': z, 'omega_delta': w} for d, z, w in
@@ -223,7 +223,7 @@ def test_results_missing_a_key_or_naming_an_unknown_controller_are_refused_by_na
 def test_a_missing_tracking_case_is_refused(bags, scores, tmp_path):
     results = synthetic_results(scores)
     results['table4'] = [row for row in results['table4']
-                        if (row['trajectory'], row['T'], row['period']) != (1, 1.0, 0.01)]
+                        if (row['trajectory'], row['duration'], row['period']) != (1, 1.0, 0.01)]
     with pytest.raises(ReportError, match='no row for pd_gravity, trajectory 1'):
         write_report(output_folder(bags, tmp_path), Results.from_json(results))
 

@@ -83,7 +83,9 @@ def test_results_have_the_documented_shape(reproduction):
     out, results = reproduction
     assert len(results['table4']) == 8
     for row in results['table4']:
-        assert {'controller', 'trajectory', 'T', 'period', 'I', 'I1', 'I2', 'kp', 'kv', 'bag', 'paper'} <= set(row)
+        assert {'controller', 'trajectory', 'duration', 'T', 'period', 'I', 'I1', 'I2', 'kp', 'kv', 'bag',
+                'paper'} <= set(row)
+        assert row['T'] == row['duration']
         assert row['controller'] in ('pd_gravity', 'computed_torque')
         assert row['delay'] == (0 if row['controller'] == 'pd_gravity' else 1)
     assert {row['limited'] for row in results['table2']} == {False, True}

@@ -18,7 +18,7 @@ def judge_claims(results: Results, settings: PaperSettings) -> list[Claim]:
     pd, ct = 'pd_gravity', 'computed_torque'  # the claims compare the two laws by name
 
     def table4_i1(controller: str, case) -> float:
-        return _rows(results.table4, controller=controller, trajectory=case.trajectory, T=case.T,
+        return _rows(results.table4, controller=controller, trajectory=case.trajectory, duration=case.duration,
                      period=case.period)[0].I1
 
     ratios = [table4_i1(pd, case) / table4_i1(ct, case) for case in settings.table4_cases]

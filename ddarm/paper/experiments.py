@@ -19,8 +19,8 @@ from ddarm.control.gains import SEARCH_START_OMEGAS, largest_stable_omega, omega
 from ddarm.control.laws import CONTROLLERS
 from ddarm.control.stability import boundary_omega_delta
 from ddarm.episodes.engine import warm_up
-from ddarm.episodes.spec import EpisodeSpec, gains_from_omega
-from ddarm.motion.programmed import paper_torque_limit, paper_trajectory, within_limits
+from ddarm.episodes.spec import EpisodeSpec, arm_joints, gains_from_omega
+from ddarm.motion.programmed import paper_torque_limit, within_limits
 from ddarm.paper.claims import judge_claims
 from ddarm.paper.schema import (BoundaryRow, FrontRow, GainSet, OmegaProcedureRow, OmegaRuleRow, ParetoFront,
                                 RestartRow, Results, Robustness, RunSettings, ScenarioRow, Search, StabilityRow,
@@ -34,7 +34,6 @@ from ddarm.tuning.jobs import POLL_S, BackgroundJobs, Job, JobError
 from ddarm.tuning.procedures import omega_procedure
 from ddarm.tuning.robust import scenario_grid
 from ddarm.tuning.search import omega_starts, search_gains
-from ddarm.tuning.tune import with_gains
 
 
 class EpisodeRecorder(Protocol):
@@ -48,9 +47,8 @@ class EpisodeRecorder(Protocol):
 
 
 def _template(controller: str, case: Case) -> EpisodeSpec:
-    joints = paper_trajectory(case.trajectory, case.T).dof  # placeholder gains, one per joint of the motion
-    return EpisodeSpec(controller=controller, kp=(1.0,) * joints, kv=(1.0,) * joints, trajectory=case.trajectory,
-                       duration=case.T, period=case.period, delay=paper_settings().delays[controller])
+    return EpisodeSpec(controller=controller, trajectory=case.trajectory, duration=case.duration, period=case.period,
+                       delay=paper_settings().delays[controller])
 
 
 def _search_record(result, wall: float, start_count: int) -> Search:
@@ -75,7 +73,7 @@ def optimise(template: EpisodeSpec, index: str, budget: Budget, progress=None) -
     return GainSet(name=f'{template.controller}-{index}-traj{template.trajectory}-T{template.duration:g}'
                         f'-dt{template.period:g}',
                    controller=template.controller, index=index, trajectory=template.trajectory,
-                   T=template.duration, period=template.period, delay=template.delay,
+                   duration=template.duration, period=template.period, delay=template.delay,
                    kp=tuple(result.kp.tolist()), kv=tuple(result.kv.tolist()),
                    search=_search_record(result, wall, len(start_kp)))
 
@@ -87,10 +85,11 @@ def pareto_record(beyond, budget: Budget, seed_i1: GainSet, seed_i: GainSet, pro
     front = pareto_front(template, budget=budget.pareto_episodes,
                          seeds=[(np.array(seed.kp), np.array(seed.kv)) for seed in seeds], progress=progress)
     return ParetoFront(
-        controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
-        delay=template.delay, method=front.method, episodes=front.episodes, wall_time_s=front.wall_time_s,
-        front_size=front.front_size, searches=front.searches, searches_converged=front.searches_converged,
-        seeds=tuple(seed.name for seed in seeds), seeds_on_front=front.seeds_on_front,
+        controller=beyond.law, trajectory=beyond.case.trajectory, duration=beyond.case.duration,
+        period=beyond.case.period, delay=template.delay, method=front.method, episodes=front.episodes,
+        wall_time_s=front.wall_time_s, front_size=front.front_size, searches=front.searches,
+        searches_converged=front.searches_converged, seeds=tuple(seed.name for seed in seeds),
+        seeds_on_front=front.seeds_on_front,
         front=[FrontRow(I1=point.I1, I2=point.I2, kp=tuple(point.kp.tolist()), kv=tuple(point.kv.tolist()))
                for point in front.front])
 
@@ -108,9 +107,9 @@ def robust_record(beyond, budget: Budget, nominal: GainSet, progress=None) -> Ro
                           method='global', popsize=budget.de_popsize, scenarios=scenarios, aggregate=grid.objective,
                           progress=progress)
     return Robustness(
-        controller=beyond.law, trajectory=beyond.case.trajectory, T=beyond.case.T, period=beyond.case.period,
-        delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()), kv=tuple(result.kv.tolist()),
-        nominal=nominal.name,
+        controller=beyond.law, trajectory=beyond.case.trajectory, duration=beyond.case.duration,
+        period=beyond.case.period, delay=template.delay, objective=grid.objective, kp=tuple(result.kp.tolist()),
+        kv=tuple(result.kv.tolist()), nominal=nominal.name,
         # The ω-rule starts come first; the last start is the nominal optimum.
         search=_search_record(result, time.perf_counter() - started, len(start_kp) - 1), rows=[])
 
@@ -165,15 +164,17 @@ class Reproduction:
                     key = (controller, index, case)
                     # Cost (episodes x samples) first, so that the last to start are short; the front's and the
                     # robust search's seeds before all.
-                    cost = self.budget.search_episodes * case.T / case.period
-                    jobs.append(Job(key, f'{controller} {index} trajectory {case.trajectory}, T = {case.T}, '
-                                         f'Δ = {case.period}', optimise, (_template(controller, case), index, self.budget),
+                    cost = self.budget.search_episodes * case.duration / case.period
+                    jobs.append(Job(key, f'{controller} {index} trajectory {case.trajectory}, '
+                                         f'T = {case.duration}, Δ = {case.period}', optimise,
+                                    (_template(controller, case), index, self.budget),
                                     total=self.budget.search_episodes, index_name=index,
                                     priority=cost + (1e12 if key in seeds else 0.0)))
-        samples = beyond.case.T / beyond.case.period
-        jobs.append(Job('front', f'I1–I2 front: {beyond.law} trajectory {beyond.case.trajectory}, T = {beyond.case.T}, '
-                                 f'Δ = {beyond.case.period}', pareto_record, (beyond, self.budget), needs=seeds,
-                        total=self.budget.pareto_episodes, priority=self.budget.pareto_episodes * samples))
+        samples = beyond.case.duration / beyond.case.period
+        jobs.append(Job('front', f'I1–I2 front: {beyond.law} trajectory {beyond.case.trajectory}, '
+                                 f'T = {beyond.case.duration}, Δ = {beyond.case.period}', pareto_record,
+                        (beyond, self.budget), needs=seeds, total=self.budget.pareto_episodes,
+                        priority=self.budget.pareto_episodes * samples))
         grid = beyond.robust
         jobs.append(Job('robust', f'robust gains: {beyond.law}, {grid.objective} I over τ = {list(grid.taus)} × '
                                   f'mass scale {list(grid.mass_scales)}', robust_record, (beyond, self.budget),
@@ -277,7 +278,7 @@ class Reproduction:
             for name, kp, kv in (('robust', robust.kp, robust.kv), ('nominal', nominal.kp, nominal.kv)):
                 self.progress(f'robust: {name} gains at τ = {scenario.tau}, mass scale {scenario.mass_scale}')
                 scale = '-'.join(f'{value:g}' for value in scenario.mass_scale)
-                row = self._episode(recorder, with_gains(scenario, kp, kv),
+                row = self._episode(recorder, scenario.with_gains(kp, kv),
                                     f'robust-{name}-tau{scenario.tau:g}-mass{scale}')
                 rows.append(ScenarioRow(tau=scenario.tau, mass_scale=tuple(scenario.mass_scale), gains=name,
                                         I1=row['I1'], I2=row['I2'], I=row['I'], diverged=row['diverged'],
@@ -292,7 +293,7 @@ class Reproduction:
             for limited in ((False, True) if table == 'table2' else (False,)):
                 for tau in self.budget.taus:
                     self.progress(f'{table}: {controller} τ = {tau} {"limited" if limited else "unlimited"}')
-                    spec = dataclasses.replace(with_gains(template, entry.kp, entry.kv), tau=tau,
+                    spec = dataclasses.replace(template.with_gains(entry.kp, entry.kv), tau=tau,
                                                torque_limit='paper' if limited else 'none')
                     name = f"{table}-{controller}-tau{tau:.2f}-{'limited' if limited else 'unlimited'}"
                     paper = (self.settings.table2_figure(controller, limited, tau) if table == 'table2'
@@ -304,12 +305,12 @@ class Reproduction:
     def _table4(self, recorder: EpisodeRecorder, gains: dict, controller: str) -> None:
         for case in self.settings.table4_cases:
             entry = gains[(controller, 'I', case)]
-            self.progress(f'table4: {controller} trajectory {case.trajectory}, T = {case.T}, Δ = {case.period}')
-            spec = with_gains(_template(controller, case), entry.kp, entry.kv)
+            self.progress(f'table4: {controller} trajectory {case.trajectory}, T = {case.duration}, Δ = {case.period}')
+            spec = _template(controller, case).with_gains(entry.kp, entry.kv)
             row = self._episode(recorder, spec,
-                                f'table4-{controller}-traj{case.trajectory}-T{case.T:g}-dt{case.period:g}')
+                                f'table4-{controller}-traj{case.trajectory}-T{case.duration:g}-dt{case.period:g}')
             self.results.table4.append(Table4Row(
-                controller=controller, trajectory=case.trajectory, T=case.T, period=case.period,
+                controller=controller, trajectory=case.trajectory, duration=case.duration, period=case.period,
                 delay=spec.delay, gains=entry.name, kp=entry.kp, kv=entry.kv, **row,
                 paper=self.settings.table4_figures(controller, case)))
 
@@ -321,7 +322,7 @@ class Reproduction:
         self.progress(f'section 2: {controller} ω = {omega} rule')
         self.results.section2.omega_rules.append(OmegaRuleRow(
             controller=controller, omega=omega, kp=tuple(kp.tolist()), kv=tuple(kv.tolist()),
-            **self._episode(recorder, with_gains(template, kp, kv), f'section2-{controller}-omega{omega:g}')))
+            **self._episode(recorder, template.with_gains(kp, kv), f'section2-{controller}-omega{omega:g}')))
         procedure = self.settings.omega_procedure[controller]
         disturbed = dataclasses.replace(template, **procedure.disturbance)
         choice = omega_procedure(disturbed, np.radians(procedure.max_error_deg))
@@ -331,7 +332,7 @@ class Reproduction:
                                 kv=None if choice.kv is None else tuple(choice.kv.tolist()))
         if choice.omega is not None:
             self.progress(f'section 2: {controller} ω procedure, ω = {choice.omega:.4g}')
-            row = dataclasses.replace(row, **self._episode(recorder, with_gains(disturbed, choice.kp, choice.kv),
+            row = dataclasses.replace(row, **self._episode(recorder, disturbed.with_gains(choice.kp, choice.kv),
                                                            f'section2-{controller}-procedure'))
         self.results.section2.omega_procedure.append(row)
 
@@ -342,9 +343,9 @@ class Reproduction:
         template = _template('computed_torque', self.settings.case)
         for period in stability.periods:
             boundary = largest_stable_omega(period, template.delay)
-            kp, kv = omega_rule_computed_torque(len(template.kp), stability.omega)
+            kp, kv = omega_rule_computed_torque(len(arm_joints(template)[0]), stability.omega)
             self.progress(f'stability: computed torque ω = {stability.omega:g} at Δ = {period}')
-            spec = with_gains(dataclasses.replace(template, period=period), kp, kv)
+            spec = dataclasses.replace(template, period=period).with_gains(kp, kv)
             row = self._episode(recorder, spec, f'stability-dt{period:g}-omega{stability.omega:g}')
             self.results.section2.stability.append(StabilityRow(
                 period=period, omega_max_stable=boundary, omega_15_stable=bool(stability.omega < boundary),

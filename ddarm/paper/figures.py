@@ -79,7 +79,7 @@ def tracking_figure(path: Path, episodes: dict, case: Case) -> None:
     handles, labels = axes[0, 0].get_legend_handles_labels()
     handles.append(Line2D([], [], color='k', linestyle='--'))
     labels.append('nominal torque $P^{nom}$ (open loop, no feedback)')
-    figure.suptitle(f'Table 4 optima of (3.2): {case_text(case.trajectory, case.T, case.period)}')
+    figure.suptitle(f'Table 4 optima of (3.2): {case_text(case.trajectory, case.duration, case.period)}')
     figure.legend(handles, labels, loc='upper center', ncol=2, bbox_to_anchor=(0.5, 0.965), frameon=False)
     figure.tight_layout(rect=(0, 0, 1, 0.92))
     figure.savefig(path)
@@ -146,7 +146,7 @@ def index_vs_tau_figure(path: Path, results: Results, settings: PaperSettings) -
     figure.legend([legend[label] for label in labels], labels, loc='lower center', ncol=3, frameon=False)
     case = settings.case
     figure.suptitle(r'Sensitivity to the initial velocity disturbance $\dot q(0) = -\dot q^d(\tau)$: '
-                    + case_text(case.trajectory, case.T, case.period))
+                    + case_text(case.trajectory, case.duration, case.period))
     figure.tight_layout(rect=(0, 0.12, 1, 1))
     figure.savefig(path)
 
@@ -154,7 +154,7 @@ def index_vs_tau_figure(path: Path, results: Results, settings: PaperSettings) -
 def table4_figure(path: Path, results: Results) -> None:
     """Table 4 as grouped bars: per case, each controller's I1 and I2 stacked, ours beside the paper's."""
     cases = table4_cases(results)
-    rows = {(row.controller, row.trajectory, row.T, row.period): row for row in results.table4}
+    rows = {(row.controller, row.trajectory, row.duration, row.period): row for row in results.table4}
     figure = _new_figure(13, 5.5)
     axis = figure.subplots()
     width = 0.2
@@ -176,7 +176,7 @@ def table4_figure(path: Path, results: Results) -> None:
             label = number(figures.I) if source == 'ours' else paper_number(figures.I)
             axis.text(x, max(figures.I, figures.I1 + figures.I2), label, ha='center', va='bottom', fontsize=8)
     axis.set_xticks(range(len(cases)),
-                    [f'trajectory {t}\nT = {T:g} s, Δ = {period:g} s' for t, T, period in cases])
+                    [f'trajectory {t}\nT = {duration:g} s, Δ = {period:g} s' for t, duration, period in cases])
     axis.tick_params(axis='x', pad=16, length=0)
     axis.set_ylim(0, axis.get_ylim()[1] * 1.08)  # room for the numbers on top
     axis.set_ylabel('minimal index (3.2): I = I1 + I2')
@@ -244,7 +244,7 @@ def stability_figure(path: Path, results: Results, settings: PaperSettings) -> N
 def pareto_figure(path: Path, results: Results, settings: PaperSettings) -> None:
     """The I1–I2 front (in-process) with the seeds' episodes as scored from their bags and the paper's Table 4 point."""
     front = results.pareto
-    case = Case(trajectory=front.trajectory, T=front.T, period=front.period)
+    case = Case(trajectory=front.trajectory, duration=front.duration, period=front.period)
     figure = _new_figure(8, 5.5)
     axis = figure.subplots()
     I1 = np.array([point.I1 for point in front.front])
@@ -271,7 +271,7 @@ def pareto_figure(path: Path, results: Results, settings: PaperSettings) -> None
     _plain_log_ticks(axis.yaxis)
     axis.set_xlabel('I1 (2.5), tracking error')
     axis.set_ylabel('I2, torque deviation from nominal')
-    axis.set_title(f'{CONTROLLER_NAMES[front.controller]}, {case_text(front.trajectory, front.T, front.period)}')
+    axis.set_title(f'{CONTROLLER_NAMES[front.controller]}, {case_text(front.trajectory, front.duration, front.period)}')
     axis.grid(True, which='both', alpha=0.3)
     axis.legend(fontsize=8)
     figure.tight_layout()

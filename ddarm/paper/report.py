@@ -32,10 +32,10 @@ class ReportError(DdarmError, ValueError):
 def tracking_row(results: Results, controller: str, case: Case) -> Table4Row:
     """The Table 4 row of `controller` at `case`, whose bag the tracking figure draws."""
     for row in results.table4:
-        if (row.controller == controller and row.trajectory == case.trajectory and math.isclose(row.T, case.T)
-                and math.isclose(row.period, case.period)):
+        if (row.controller == controller and row.trajectory == case.trajectory
+                and math.isclose(row.duration, case.duration) and math.isclose(row.period, case.period)):
             return row
-    raise ReportError(f'table4: no row for {controller}, trajectory {case.trajectory}, T = {case.T} s, '
+    raise ReportError(f'table4: no row for {controller}, trajectory {case.trajectory}, T = {case.duration} s, '
                       f'period {case.period} s (the tracking figure needs it)')
 
 
@@ -90,7 +90,7 @@ index grows with τ, what the torque limits do). Choices that may explain differ
 
 def _figures_section(settings: PaperSettings) -> str:
     case = settings.tracking_case
-    tracking = case_text(case.trajectory, case.T, case.period)
+    tracking = case_text(case.trajectory, case.duration, case.period)
     delay, omega = settings.delays['computed_torque'], settings.stability.omega
     return f"""## Figures
 

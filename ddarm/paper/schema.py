@@ -22,7 +22,8 @@ from ddarm.paper.settings import Controller, Table4Figures
 
 Index = Literal[INDICES]
 Vector = tuple[float, ...]
-# results.json's layout: raise it with any change to the keys or their meaning.
+# results.json's layout: raise it with any change to the keys or their meaning. `duration` came within version 2,
+# beside `T`, which it renames and which is still written: files with either key (or both) read alike.
 SCHEMA_VERSION = 2
 
 
@@ -73,7 +74,7 @@ class GainSet:
     controller: Controller
     index: Index
     trajectory: int
-    T: float
+    duration: float = typed.aliased('T')
     period: float
     delay: int
     kp: Vector
@@ -104,7 +105,7 @@ class TauRow:
 class Table4Row:
     controller: Controller
     trajectory: int
-    T: float
+    duration: float = typed.aliased('T')
     period: float
     delay: int
     gains: str
@@ -190,7 +191,7 @@ class ParetoFront:
 
     controller: Controller
     trajectory: int
-    T: float
+    duration: float = typed.aliased('T')
     period: float
     delay: int
     method: str
@@ -225,7 +226,7 @@ class Robustness:
 
     controller: Controller
     trajectory: int
-    T: float
+    duration: float = typed.aliased('T')
     period: float
     delay: int
     objective: Literal['worst', 'mean']

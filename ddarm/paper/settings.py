@@ -48,10 +48,10 @@ class SettingsError(DdarmError, ValueError):
 
 @dataclass(frozen=True)
 class Case:
-    """One experiment's motion and sampling: a paper trajectory, T and Δ in s."""
+    """One experiment's motion and sampling: a paper trajectory, its duration T and Δ in s."""
 
     trajectory: int
-    T: float
+    duration: float
     period: float
 
 
@@ -204,7 +204,8 @@ def load_settings(path: Path | str = SETTINGS_PATH) -> PaperSettings:
     except (OSError, DataFileError, yaml.YAMLError) as error:
         raise SettingsError(f'{path}: cannot read the settings: {error}') from error
     _refuse_huge_integers(document, path, '')
-    settings = typed.read(PaperSettings, document, str(path), SettingsError)
+    # A user's copy may still name a case's duration T, as this file did before.
+    settings = typed.read(PaperSettings, document, str(path), SettingsError, renamed={Case: {'T': 'duration'}})
     _check(settings, path)
     return settings
 
@@ -267,8 +268,8 @@ def _check(settings: PaperSettings, path: Path) -> None:
 
 def _check_beyond(beyond: Beyond, fail) -> None:
     for tau in beyond.robust.taus:
-        if not (math.isfinite(tau) and 0 <= tau <= beyond.case.T):
-            fail(f'beyond.robust.taus: {tau!r} must be within [0, T = {beyond.case.T:g}] s')
+        if not (math.isfinite(tau) and 0 <= tau <= beyond.case.duration):
+            fail(f'beyond.robust.taus: {tau!r} must be within [0, T = {beyond.case.duration:g}] s')
     for scale in beyond.robust.mass_scales:
         _positive(fail, 'beyond.robust.mass_scales', scale)
     for key, values in (('beyond.robust.taus', beyond.robust.taus), ('beyond.robust.mass_scales',
@@ -315,19 +316,19 @@ def _check_runs(settings: PaperSettings, cases: dict[str, Case], joints: dict[st
         except GainError as error:
             fail(f'delays.{controller}: {error}')
     for key, case in cases.items():
-        _positive(fail, f'{key}.T', case.T)
+        _positive(fail, f'{key}.duration', case.duration)
         _positive(fail, f'{key}.period', case.period)
     # Bag names (ddarm.paper.experiments) hold τ to 2 decimals, T and Δ as %g.
-    distinct('the table4 cases', [f'traj{case.trajectory}-T{case.T:g}-dt{case.period:g}'
+    distinct('the table4 cases', [f'traj{case.trajectory}-T{case.duration:g}-dt{case.period:g}'
                                   for case in settings.table4_cases])
     distinct('the taus', [f'tau{tau:.2f}' for tau in settings.taus])
     distinct('the stability.periods', [f'dt{period:g}' for period in settings.stability.periods])
     case = settings.case
     for controller in CONTROLLERS:
-        # The searches' and Table 4's episodes (placeholder gains, one per joint of the motion).
+        # The searches' and Table 4's episodes, but their gains.
         templates = {key: checked(key, lambda: EpisodeSpec(
-            controller=controller, kp=(1.0,) * joints[key], kv=(1.0,) * joints[key], trajectory=each.trajectory,
-            duration=each.T, period=each.period, delay=settings.delays[controller]))
+            controller=controller, trajectory=each.trajectory, duration=each.duration, period=each.period,
+            delay=settings.delays[controller]))
             for key, each in cases.items()}
         template = templates['case']
         # Tables 2 and 3: every τ the paper prints (a budget runs some of them), unlimited and limited.
@@ -346,7 +347,7 @@ def _check_runs(settings: PaperSettings, cases: dict[str, Case], joints: dict[st
         if not np.any(steady_state_error_per_unit_gain(disturbed)[0]):
             fail(f'omega_procedure.{controller}.disturbance {dict(procedure.disturbance)} causes no steady-state '
                  'error: the procedure would have no smallest ω to find')
-    # The sampling claim: computed torque at ω for every period, at the case's T.
+    # The sampling claim: computed torque at ω for every period, at the case's duration.
     stability = settings.stability
     _positive(fail, 'stability.omega', stability.omega)
     _positive(fail, 'stability.claimed_period', stability.claimed_period)
@@ -354,8 +355,8 @@ def _check_runs(settings: PaperSettings, cases: dict[str, Case], joints: dict[st
     for i, period in enumerate(stability.periods):
         _positive(fail, f'stability.periods[{i}]', period)
         checked(f'stability.periods[{i}]', lambda: EpisodeSpec(
-            controller='computed_torque', kp=kp, kv=kv, trajectory=case.trajectory, duration=case.T, period=period,
-            delay=settings.delays['computed_torque']))
+            controller='computed_torque', kp=kp, kv=kv, trajectory=case.trajectory, duration=case.duration,
+            period=period, delay=settings.delays['computed_torque']))
 
 
 def _check_claims_and_budgets(settings: PaperSettings, joints: int, fail) -> None:

@@ -91,7 +91,7 @@ def table4_cases(results: Results) -> list[tuple]:
     """Table 4's cases (trajectory, T, Δ) in the order they first appear."""
     cases = []
     for row in results.table4:
-        case = (row.trajectory, row.T, row.period)
+        case = (row.trajectory, row.duration, row.period)
         if case not in cases:
             cases.append(case)
     return cases
@@ -136,7 +136,7 @@ def table2(results: Results, cells: Cells, settings: PaperSettings) -> str:
             line.append(_limit_cell(any(not row.within_limits for row in present), _peak_ratio(present[0]))
                         if present else '—')
         body.append(line)
-    case = sentence(case_text(settings.case.trajectory, settings.case.T, settings.case.period))
+    case = sentence(case_text(settings.case.trajectory, settings.case.duration, settings.case.period))
     return f"""## Table 2: index (2.5) against the initial disturbance τ, gains optimised for (2.5)
 
 {case}; q̇(0) = -q̇^d(τ) (3.1). "limited": |P_i| ≤ 2 max |P_i^nom| enforced by
@@ -168,7 +168,7 @@ def table3(results: Results, cells: Cells, settings: PaperSettings) -> str:
             within = f'yes ({number(ratio)}×)' if row.within_limits else f'**no** ({number(ratio)}×)'
             line += [cells.index(row, 'I1'), paper_number(row.paper), within]
         body.append(line)
-    case = sentence(case_text(settings.case.trajectory, settings.case.T, settings.case.period))
+    case = sentence(case_text(settings.case.trajectory, settings.case.duration, settings.case.period))
     return f"""## Table 3: index (2.5) against τ, gains optimised for (3.2)
 
 {case}, torque unlimited. The paper: "the driving torques do not exceed their
@@ -186,10 +186,10 @@ def table4(results: Results, cells: Cells) -> str:
     cases = table4_cases(results)
     body = []
     # As the paper: the two controllers of a case side by side.
-    for row in sorted(results.table4, key=lambda row: (cases.index((row.trajectory, row.T, row.period)),
+    for row in sorted(results.table4, key=lambda row: (cases.index((row.trajectory, row.duration, row.period)),
                                                        CONTROLLERS.index(row.controller))):
         paper = [paper_number(None if row.paper is None else getattr(row.paper, key)) for key in ('I', 'I1', 'I2')]
-        body.append([case_text(row.trajectory, row.T, row.period), CONTROLLER_NAMES[row.controller],
+        body.append([case_text(row.trajectory, row.duration, row.period), CONTROLLER_NAMES[row.controller],
                      str(row.delay), cells.index(row, 'I'), paper[0], cells.index(row, 'I1'), paper[1],
                      cells.index(row, 'I2'), paper[2], vector(row.kp), vector(row.kv)])
     return f"""## Table 4: minimal (3.2), I = I1 + I2
@@ -218,7 +218,8 @@ def gains(results: Results, cells: Cells) -> str:
         episode = _undisturbed_row(results, row.name)
         scored = '—' if episode is None else cells.index(episode, row.index)
         body.append([f'`{row.name}`', CONTROLLER_NAMES[row.controller], row.index,
-                     case_text(row.trajectory, row.T, row.period), str(row.delay), vector(row.kp), vector(row.kv),
+                     case_text(row.trajectory, row.duration, row.period), str(row.delay), vector(row.kp),
+                     vector(row.kv),
                      f'{number(search.start_index)} → {number(search.in_process_index)}', scored,
                      str(search.episodes), number(search.wall_time_s), number(search.episodes_per_s),
                      f'{search.restarts_within_1_percent} of {len(search.restarts)}',
@@ -257,7 +258,7 @@ def section2(results: Results, cells: Cells, settings: PaperSettings) -> str:
             episode += ' **diverged**'
         stability.append([f'{row.period:g}', f'{1 / row.period:g}', number(row.omega_max_stable), stable, episode])
     case, omega, hertz = settings.case, settings.stability.omega, 1 / settings.stability.claimed_period
-    case_line = case_text(case.trajectory, case.T, case.period)
+    case_line = case_text(case.trajectory, case.duration, case.period)
     return f"""## Section 2: gains from simplified models
 
 ### ω-rule gains
@@ -278,7 +279,7 @@ torques stay within their limits and do not grow excessively over the nominal on
 ### Stability of computed torque (delay d = {settings.delays['computed_torque']}) against the sampling period
 
 The paper: at {hertz:g} Hz and above, computed torque stays stable at ω = {omega:g}. The largest stable ω
-for each Δ, and the episode at ω = {omega:g} (trajectory {case.trajectory}, T = {case.T:g} s).
+for each Δ, and the episode at ω = {omega:g} (trajectory {case.trajectory}, T = {case.duration:g} s).
 
 {markdown_table(['Δ s', 'sampling Hz', 'largest stable ω rad/s', f'ω = {omega:g} stable', f'I1 at ω = {omega:g}'],
                 stability)}
@@ -298,7 +299,7 @@ def beyond(results: Results, cells: Cells, settings: PaperSettings) -> str:
                           for name, on in zip(front.seeds, front.seeds_on_front))
         parts.append(f"""### The I1–I2 front
 
-{CONTROLLER_NAMES[front.controller]}, {case_text(front.trajectory, front.T, front.period)}, delay {front.delay}:
+{CONTROLLER_NAMES[front.controller]}, {case_text(front.trajectory, front.duration, front.period)}, delay {front.delay}:
 {len(front.front)} points of the {front.front_size} non-dominated episodes found in {front.episodes} episodes
 ({number(front.wall_time_s)} s in-process, batch engine; {front.method}; {front.searches_converged} of its
 {front.searches} refining searches converged). It was seeded by {seeds}. These are in-process numbers; the
@@ -348,7 +349,7 @@ def _robust_table(robust, cells: Cells) -> str:
         body.append([f'{name} over the scenarios', *figures])
     return f"""### Robust gains
 
-{CONTROLLER_NAMES[robust.controller]}, {case_text(robust.trajectory, robust.T, robust.period)}: the gains that
+{CONTROLLER_NAMES[robust.controller]}, {case_text(robust.trajectory, robust.duration, robust.period)}: the gains that
 minimise the {robust.objective} I (3.2) over the scenarios below (in-process, {robust.search.episodes} episodes in
 {number(robust.search.wall_time_s)} s; {robust.search.restarts_within_1_percent} of its
 {len(robust.search.restarts)} local runs within 1 % of its optimum), k_p = {vector(robust.kp)}, k_v =

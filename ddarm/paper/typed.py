@@ -2,7 +2,9 @@
 
 A field's annotation is its contract. Every field is required and no other key is taken, so a stale or
 mistyped file is refused rather than half read; a value must have its field's type (a float field takes
-an int, a bool is never a number). A refusal names the key by its path, e.g. `table2[3].bag`.
+an int, a bool is never a number). A refusal names the key by its path, e.g. `table2[3].bag`. The one
+exception is a renamed field's old name: an alias (`aliased`) written beside it, or a deprecated key
+(`read`'s `renamed`) read in its place with a notice.
 """
 
 from __future__ import annotations
@@ -12,18 +14,34 @@ import types
 from collections.abc import Mapping
 from typing import Literal, Union, get_args, get_origin, get_type_hints
 
+from ddarm.deprecation import renamed_keys
 from ddarm.motion.files import shown
 
+_ALIAS = 'alias'
 
-def read(kind: type, data, source: str, error: type[Exception]):
-    """`data` as a `kind` (a dataclass); `error` names `source` and the key of anything refused."""
-    return _Reader(source, error).value(kind, data, '')
+
+def aliased(old: str):
+    """A field also written as `old`, right after it with the same value, so that readers of the file who know it
+    by its old name go on working; read from either key, or from both when they agree."""
+    return dataclasses.field(metadata={_ALIAS: old})
+
+
+def read(kind: type, data, source: str, error: type[Exception],
+         renamed: Mapping[type, Mapping[str, str]] | None = None):
+    """`data` as a `kind` (a dataclass); `error` names `source` and the key of anything refused. `renamed` gives,
+    per dataclass, its deprecated keys (old: new), read as the new ones with a notice (ddarm.deprecation)."""
+    return _Reader(source, error, renamed or {}).value(kind, data, '')
 
 
 def write(value):
     """A dataclass as plain dicts, lists and scalars, in field order (json.dumps writes it as it is)."""
     if dataclasses.is_dataclass(value):
-        return {field.name: write(getattr(value, field.name)) for field in dataclasses.fields(value)}
+        written = {}
+        for field in dataclasses.fields(value):
+            written[field.name] = write(getattr(value, field.name))
+            if _ALIAS in field.metadata:
+                written[field.metadata[_ALIAS]] = written[field.name]
+        return written
     if isinstance(value, Mapping):
         return {key: write(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
@@ -37,8 +55,8 @@ def _join(path: str, key) -> str:
 
 
 class _Reader:
-    def __init__(self, source: str, error: type[Exception]) -> None:
-        self.source, self.error = source, error
+    def __init__(self, source: str, error: type[Exception], renamed: Mapping[type, Mapping[str, str]]) -> None:
+        self.source, self.error, self.renamed = source, error, renamed
 
     def fail(self, message: str):
         raise self.error(f'{self.source}: {message}')
@@ -82,6 +100,9 @@ class _Reader:
     def record(self, kind: type, data, path: str):
         if not isinstance(data, dict):
             self.fail(f'{path or "the top level"} must be a mapping, got {type(data).__name__}')
+        if kind in self.renamed:
+            data = renamed_keys(data, self.renamed[kind], f'{self.source}: {path}', self.error)
+        data = self.unaliased(kind, data, path)
         names = [field.name for field in dataclasses.fields(kind)]
         for name in names:
             if name not in data:
@@ -91,3 +112,17 @@ class _Reader:
                 self.fail(f'unknown key {_join(path, key)!r}')
         hints = get_type_hints(kind)
         return kind(**{name: self.value(hints[name], data[name], _join(path, name)) for name in names})
+
+    def unaliased(self, kind: type, data: dict, path: str) -> dict:
+        """`data` with each alias's value under its field's name. No notice: the alias is written beside the field
+        (files written before the field had its name hold the alias only)."""
+        for field in dataclasses.fields(kind):
+            old = field.metadata.get(_ALIAS)
+            if old is None or old not in data:
+                continue
+            data = dict(data)
+            value = data.pop(old)
+            if data.setdefault(field.name, value) != value:
+                self.fail(f'{_join(path, field.name)} is {shown(data[field.name])} but its deprecated name '
+                          f'{_join(path, old)} is {shown(value)}: the two must be equal')
+        return data
