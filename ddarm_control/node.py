@@ -37,9 +37,11 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
+from ddarm.arrays import per_joint
 from ddarm.control.gains import gains_from_parameters
 from ddarm.control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
+from ddarm.deprecation import deprecation_notice
 from ddarm.errors import DdarmError
 from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import MotionError, nominal_torque
@@ -139,7 +141,7 @@ class ControllerNode(ManagedNode):
         self.configuration = 0
         self.ticks = 0
         self._forget_configuration()
-        refuse_undeclared_parameters(self, law, self.known_joints, self._one_gain_form, kind='controller')
+        refuse_undeclared_parameters(self, law, self.known_joints, self._keyed_gains, kind='controller')
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         if self.get_parameter('autostart').value:
@@ -176,6 +178,11 @@ class ControllerNode(ManagedNode):
         if unknown:
             raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, self.joints)}')
         values = proposed_values(self, ())
+        held = [Parameter(name, value=[float(x) for x in values[name]]) for name in ('kp', 'kv')
+                if values[name] is not None and len(values[name])]
+        if held and not any(values[name] for name in values if gain_joint(name) is not None):
+            self.set_parameters_atomically(held)  # given at start: read as the gains by joint (_keyed_gains)
+            values = proposed_values(self, ())
         self.period = values['period']
         self.max_sample_gap = values['max_sample_gap']
         self.limits = self._robot_limits(values) if self.sampling == 'timer' else None
@@ -297,34 +304,30 @@ class ControllerNode(ManagedNode):
                                   f'{values["motion"]}: give one of them, or the same joints in the same order')
         return Arm.from_urdf(urdf, None, joints, getattr(self.motion_file, 'locked', ())), joints
 
-    def _one_gain_form(self, parameters: list) -> list:
-        """A change of gains in the form not in force converts the gains to its form, so the node holds one:
-        kp (or kv) set on a node holding gains.<joint>.p/.d clears those, the other diagonal taken from them;
-        gains.<joint>.p (or .d) set on a node holding kp/kv clears kp and kv, the other joints' gains taken
-        from them. A change giving both forms is left as it is, to be refused."""
+    def _keyed_gains(self, parameters: list) -> list:
+        """The node holds its gains by joint (gains.<joint>.p and .d, ros2_controllers' form): a positional kp or kv
+        (deprecated) set once the joints are known is read as those, with a notice, and left empty. One that cannot
+        be (not a finite number > 0 per joint), or given with gains by joint in the same change, is left as it is,
+        for the check to refuse naming it."""
         names = {parameter.name for parameter in parameters}
-        keyed = [gain_parameter(joint, key) for joint in self.joints for key in GAIN_KEYS]
-        current = proposed_values(self, ())
-        sets_positional = any(parameter.name in ('kp', 'kv') and parameter.value is not None
-                              and len(parameter.value) for parameter in parameters)
-        sets_keyed = any(parameter.name in keyed and parameter.value != 0.0 for parameter in parameters)
-        if sets_positional == sets_keyed:
+        keyed = {gain_parameter(joint, key) for joint in self.joints for key in GAIN_KEYS}
+        positional = [parameter for parameter in parameters if parameter.name in ('kp', 'kv')
+                      and parameter.value is not None and len(parameter.value)]
+        if not self.joints or not positional or not names.isdisjoint(keyed):
             return parameters
-        if sets_positional and names.isdisjoint(keyed) and any(current[name] != 0.0 for name in keyed):
-            extra = [Parameter(name, value=0.0) for name in keyed]
-            extra += [Parameter(diagonal, value=[float(current[gain_parameter(joint, key)]) for joint in self.joints])
-                      for diagonal, key in zip(('kp', 'kv'), GAIN_KEYS) if diagonal not in names]
-            return [*parameters, *extra]
-        held = {diagonal: current[diagonal] for diagonal in ('kp', 'kv')
-                if current[diagonal] is not None and len(current[diagonal])}
-        if sets_keyed and names.isdisjoint(('kp', 'kv')) and held:
-            extra = [Parameter(diagonal, Parameter.Type.DOUBLE_ARRAY, []) for diagonal in held]
-            if len(held) == 2 and all(len(values) == len(self.joints) for values in held.values()):
-                extra += [Parameter(gain_parameter(joint, key), value=float(held[diagonal][i]))
-                          for diagonal, key in zip(('kp', 'kv'), GAIN_KEYS) for i, joint in enumerate(self.joints)
-                          if gain_parameter(joint, key) not in names]
-            return [*parameters, *extra]
-        return parameters
+        converted = []
+        for parameter in positional:
+            try:
+                values = per_joint(parameter.name, parameter.value, len(self.joints), GainError, positive=True)
+            except GainError:
+                return parameters
+            key = GAIN_KEYS[('kp', 'kv').index(parameter.name)]
+            converted += [Parameter(gain_parameter(joint, key), value=float(value))
+                          for joint, value in zip(self.joints, values)]
+            converted.append(Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY, []))
+            self.get_logger().warning(deprecation_notice(parameter.name, f'gains.<joint>.{key}',
+                                                         f'{self.law_name} parameter'))
+        return [parameter for parameter in parameters if parameter not in positional] + converted
 
     def _robot_limits(self, values: dict) -> RobotLimits:
         """The bounds of robot mode from the URDF and the parameters; ControllerError naming the joint if the
@@ -367,6 +370,9 @@ class ControllerNode(ManagedNode):
             return SetParametersResult(successful=True)
         values = proposed_values(self, changes)
         try:
+            for name in ('kp', 'kv'):  # a positional diagonal not read as gains by joint: refused naming it
+                if values[name] is not None and len(values[name]):
+                    per_joint(name, values[name], len(self.joints), GainError, positive=True)
             effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
             checked_delay(values['delay'])
             self._friction(values)

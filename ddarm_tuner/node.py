@@ -9,18 +9,19 @@ import numpy as np
 from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
-from ddarm.control.laws import CONTROLLERS
-from ddarm.deprecation import renamed_keys
+from ddarm.control.laws import CONTROLLERS, GainError
+from ddarm.deprecation import deprecation_notice, renamed_keys
 from ddarm.ros.executable import run_executable
 from ddarm.ros.executors import node_executor
 from ddarm.ros.parameter_files import parameter_document
-from ddarm.ros.interface import (declare_from_schema, flat_parameters, given_gains, proposed_values, refuse_undeclared_parameters,
-                                 undeclared_overrides)
+from ddarm.ros.interface import (GAIN_KEYS, declare_from_schema, declare_joint_gains, flat_parameters, gain_joint,
+                                 given_gains, proposed_values, refuse_undeclared_parameters, undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
 from ddarm.recording.gains_file import CONTROLLER_RENAMED
 from ddarm.episodes.indices import INDICES
 from ddarm.episodes.spec import EpisodeError, EpisodeSpec, check_episode, read_motion_file
 from ddarm.interrupts import Interrupted, stop_on_signals
+from ddarm.motion.programmed import MotionError
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.node_parameters import READ_ONLY, episode_record, same_read_only
 from ddarm.recording.runs import RunFolder
@@ -48,6 +49,13 @@ class TunerNode(GraphDriver):
             raise
 
     def _checked_sweep(self) -> list:
+        values = proposed_values(self, ())
+        try:
+            self.joints = list(read_motion_file(values['motion'] or None, values['trajectory']).joint_names)
+        except MotionError as error:
+            raise EpisodeError(str(error)) from error
+        for joint in self.joints:  # the gains by joint, as a controller takes them
+            declare_joint_gains(self, joint)
         unknown = undeclared_overrides(self, self._given_overrides)
         if unknown:
             raise EpisodeError(f'unknown parameters {unknown} (not tuner parameters: a typo?)')
@@ -65,8 +73,7 @@ class TunerNode(GraphDriver):
                 document = parameter_document(values['gains_file'])
                 gains = document[values['controller']]['ros__parameters']
                 # Read by the controller node's own rule: gains.<joint>.p/.d or the positional kp/kv.
-                joints = read_motion_file(values['motion'] or None, values['trajectory']).joint_names
-                kp, kv = given_gains({**flat_parameters(gains), 'omega': 0.0}, list(joints))
+                kp, kv = given_gains({**flat_parameters(gains), 'omega': 0.0}, self.joints)
                 gains = renamed_keys(gains, CONTROLLER_RENAMED, f"gains_file {values['gains_file']}", EpisodeError)
                 delay, period = gains.get('delay', values['delay']), gains.get('period')
             except (ValueError, KeyError, TypeError, AttributeError) as error:
@@ -85,9 +92,16 @@ class TunerNode(GraphDriver):
                                        f"{gains[name]!r}; the sweep's is {wanted[name]!r}: set urdf, model_urdf "
                                        'and motion to match')
             return kp, kv, delay
-        if values['kp'] is None or values['kv'] is None:
-            raise EpisodeError('set kp and kv, or gains_file')
-        return values['kp'], values['kv'], values['delay']
+        positional = [name for name in ('kp', 'kv') if values[name] is not None and len(values[name])]
+        if not positional and not any(values[name] for name in values if gain_joint(name) is not None):
+            raise EpisodeError(f'set the gains: gains.<joint>.p and .d for each joint of {self.joints}, or gains_file')
+        try:
+            kp, kv = given_gains({**values, 'omega': 0.0}, self.joints)
+        except GainError as error:
+            raise EpisodeError(str(error)) from error
+        for name, key in zip(positional, GAIN_KEYS):
+            self.get_logger().warning(deprecation_notice(name, f'gains.<joint>.{key}', 'tuner parameter'))
+        return kp, kv, values['delay']
 
     def _episode_specs(self) -> list[tuple[str, EpisodeSpec]]:
         """Every episode of the sweep, checked as a run would check it: nothing reaches ROS to be refused there."""

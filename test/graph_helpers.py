@@ -14,6 +14,7 @@ from rclpy.parameter_client import AsyncParameterClient
 from ddarm_control.node import ControllerNode
 from ddarm_sim.node import PlantNode
 from ddarm.episodes.spec import plan_episode
+from ddarm.ros.interface import flat_parameters
 from ddarm.ros.driver import GraphDriver
 from ddarm.ros.node_parameters import node_parameters
 
@@ -67,7 +68,8 @@ class InProcessGraph:
         self.spec, self.plan = spec, plan_episode(spec)
         parameters = node_parameters(spec, self.plan)
         plant_values = {**parameters['plant']['ros__parameters'], **(plant_extra or {})}
-        controller_values = {**parameters[spec.controller]['ros__parameters'], **(controller_extra or {})}
+        controller_values = {**flat_parameters(parameters[spec.controller]['ros__parameters']),
+                             **(controller_extra or {})}
         self.plant = PlantNode(context=context, parameter_overrides=overrides(plant_values))
         self.controller = ControllerNode(spec.controller, context=context,
                                          parameter_overrides=overrides(controller_values))

@@ -137,12 +137,14 @@ def test_the_written_yaml_loads_as_it_is_in_a_node_process(tmp_path, ros_context
     assert process.returncode == 0, output
 
 
-def test_the_positional_gains_still_work(ros_context):
+def test_the_positional_gains_still_work_read_as_the_gains_by_joint(ros_context):
     node = ControllerNode('computed_torque', context=ros_context,
                           parameter_overrides=overrides({'kp': [1.0, 2.0, 3.0], 'kv': [4.0, 5.0, 6.0]}))
     try:
         assert node.controller.law.kp.tolist() == [1.0, 2.0, 3.0] and node.controller.law.kv.tolist() == [4, 5, 6]
-        assert node.get_parameter('gains.joint1.p').value == 0.0  # unset
+        # Read as the gains by joint, which the node holds from then on (the deprecated form left empty).
+        assert [node.get_parameter(f'gains.{joint}.d').value for joint in DDARM_JOINTS] == [4.0, 5.0, 6.0]
+        assert len(node.get_parameter('kp').value) == 0
     finally:
         node.destroy_node()
 
@@ -219,20 +221,21 @@ def test_keyed_gains_set_at_run_time_through_the_service_atomically_and_validate
         assert node.controller.law.kv.tolist() == [10.0, 20.0, 33.0]
 
 
-def test_a_change_in_the_other_form_converts_the_gains_to_it(keyed_node):
-    """What the episode driver does (kp, then kv, one by one) works on a node started with keyed gains."""
+def test_a_positional_change_is_read_as_the_gains_by_joint(keyed_node):
+    """The node holds its gains by joint: kp (or kv), deprecated, set at run time is read as gains.<joint>.p (.d)."""
     node = keyed_node
     assert node.set_parameters([Parameter('kp', value=[1.0, 2.0, 3.0])])[0].successful
     assert node.controller.law.kp.tolist() == [1.0, 2.0, 3.0]
-    assert node.controller.law.kv.tolist() == [10.0, 20.0, 30.0]  # kept, now as kv
-    assert list(node.get_parameter('kv').value) == [10.0, 20.0, 30.0]
-    assert node.get_parameter('gains.joint1.p').value == 0.0 and node.get_parameter('gains.joint1.d').value == 0.0
+    assert node.controller.law.kv.tolist() == [10.0, 20.0, 30.0]
+    assert [node.get_parameter(f'gains.{joint}.p').value for joint in DDARM_JOINTS] == [1.0, 2.0, 3.0]
+    assert len(node.get_parameter('kp').value) == 0 and node.get_parameter('gains.joint1.d').value == 10.0
     assert node.set_parameters([Parameter('kv', value=[4.0, 5.0, 6.0])])[0].successful
-    assert node.controller.law.kv.tolist() == [4.0, 5.0, 6.0]
-    # And back: one keyed gain set, the others taken from kp and kv.
+    assert node.controller.law.kv.tolist() == [4.0, 5.0, 6.0] and node.get_parameter('gains.joint3.d').value == 6.0
     assert node.set_parameters([Parameter('gains.joint2.p', value=22.0)])[0].successful
     assert node.controller.law.kp.tolist() == [1.0, 22.0, 3.0] and node.controller.law.kv.tolist() == [4, 5, 6]
-    assert len(node.get_parameter('kp').value) == 0 and node.get_parameter('gains.joint3.d').value == 6.0
+    # A positional diagonal that is not one gain > 0 per joint is refused naming it; nothing changes.
+    result = node.set_parameters([Parameter('kp', value=[1.0, 2.0])])[0]
+    assert not result.successful and 'kp needs 3' in result.reason
     # Both forms in one change: refused, nothing changes.
     result = node.set_parameters_atomically([Parameter('kp', value=[9.0] * 3), Parameter('gains.joint1.p', value=9.0)])
     assert not result.successful and 'gains given twice' in result.reason

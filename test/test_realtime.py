@@ -176,7 +176,7 @@ def test_an_episode_whose_scheduling_the_os_refuses_does_not_start_and_says_why(
     refuse_fifo(monkeypatch)
     graph = InProcessGraph(ros_context, SPEC)
     try:
-        with pytest.raises(GraphEpisodeError, match=r"/plant refused parameters: \['realtime_priority: "
+        with pytest.raises(GraphEpisodeError, match=r"/plant refused the episode's parameters: "
                                                     r'realtime_priority = 80: the OS refused SCHED_FIFO'):
             graph.driver.run_episode(graph.executor, SPEC, graph.plan, mode='realtime',
                                      scheduling=SchedulingOptions(80))

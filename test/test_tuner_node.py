@@ -140,3 +140,23 @@ def test_a_node_that_dies_during_a_sweep_is_named(tmp_path):
     assert 'published nothing' in failure or 'left the graph' in failure, failure
     summary = json.loads(summary_path.read_text())
     assert summary['status'] == 'failed' and '/plant' in summary['error']
+
+
+def test_the_tuner_takes_the_gains_by_joint_and_the_deprecated_positional_form_as_the_same(ros_context):
+    keyed = [Parameter(f'gains.joint{i}.{key}', value=value) for i, (p, d) in enumerate(
+        [(100.0, 10.0), (200.0, 20.0), (300.0, 30.0)], start=1) for key, value in (('p', p), ('d', d))]
+    positional = [Parameter('kp', value=[100.0, 200.0, 300.0]), Parameter('kv', value=[10.0, 20.0, 30.0])]
+    specs = []
+    for given in (keyed, positional):
+        tuner = TunerNode(context=ros_context, parameter_overrides=given)
+        try:
+            specs.append([spec for _, spec, _ in tuner.specs])
+        finally:
+            tuner.destroy_node()
+    assert specs[0] == specs[1] and specs[0][0].kp == (100.0, 200.0, 300.0) and specs[0][0].kv == (10.0, 20.0, 30.0)
+    with pytest.raises(EpisodeError, match='gains given twice'):
+        TunerNode(context=ros_context, parameter_overrides=keyed + positional)
+    with pytest.raises(EpisodeError, match=r"set the gains: gains.<joint>.p and .d for each joint of \['joint1'"):
+        TunerNode(context=ros_context)
+    with pytest.raises(EpisodeError, match=r"unknown parameters \['gains.wrist.p'\]"):
+        TunerNode(context=ros_context, parameter_overrides=[*keyed, Parameter('gains.wrist.p', value=1.0)])

@@ -140,7 +140,7 @@ def test_the_panda_robot_tracks_far_worse_than_its_urdf_predicts(capsys, tmp_pat
     assert '![' in page and '(errors.png)' in page and '| I1 (2.5) |' in page
 
 
-def test_the_positional_form_is_read_as_the_keyed_form(tmp_path):
+def test_the_positional_form_is_read_as_the_keyed_form_with_a_notice(tmp_path):
     spec = tuned_spec(UR5 / 'ur5.urdf', UR5 / 'ur5-motion.yaml', 10.0, 'pd_gravity')
     keyed = write_yaml(tmp_path / 'keyed.yaml', spec)
     document = yaml.safe_load(keyed.read_text())
@@ -150,7 +150,10 @@ def test_the_positional_form_is_read_as_the_keyed_form(tmp_path):
     parameters['kv'] = [gains[joint]['d'] for joint in gains]
     positional = tmp_path / 'positional.yaml'
     positional.write_text(yaml.safe_dump(document))
-    read = read_gains_file(positional)
+    from ddarm.deprecation import DeprecatedName
+
+    with pytest.warns(DeprecatedName, match="'kp and kv' is deprecated, read as 'gains \\(by joint\\)'"):
+        read = read_gains_file(positional)
     assert read == dataclasses.replace(read_gains_file(keyed), path=str(positional))
     assert validation_spec(read) == spec
 

@@ -78,8 +78,8 @@ ROS_PAGE = PAGE.with_name('ros-interface.md')
 PARAMETER_TYPES = {1: 'bool', 2: 'integer', 3: 'double', 4: 'string', 5: 'byte[]', 6: 'bool[]', 7: 'integer[]',
                    8: 'double[]', 9: 'string[]'}
 # What each node needs to start at all; documented as required, not as a default.
-REQUIRED = {'pd_gravity': {'kp': [1.0] * 3, 'kv': [1.0] * 3}, 'computed_torque': {'kp': [1.0] * 3, 'kv': [1.0] * 3},
-            'tuner': {'kp': [1.0] * 3, 'kv': [1.0] * 3},
+GAINS = {f'gains.joint{i}.{key}': 1.0 for i in (1, 2, 3) for key in ('p', 'd')}  # the ddarm arm's joints
+REQUIRED = {'pd_gravity': GAINS, 'computed_torque': GAINS, 'tuner': GAINS,
             'robot': {'mjcf': str(PAGE.parent.parent / 'config' / 'robots' / 'panda' / 'panda.xml')}}
 
 
@@ -172,7 +172,7 @@ def ros_interface() -> str:
                  'Generated from the nodes themselves by `make docs` (`python -m ddarm.cli.docs`): each node started '
                  'with its defaults, its topics, services and declared parameters read back. Do not edit by hand: '
                  'every parameter is defined in `ddarm/ros/parameter_schema.py`, which the nodes declare theirs from. '
-                 'A default `required` must be given (kp and kv, or the gains by joint).']
+                 'A default `required` must be given (the gains by joint).']
         for title, run, node in nodes:
             kind = 'controller' if title in CONTROLLERS else title
             lines += _node_section(title, run, node, REQUIRED.get(title, {}), kind)

@@ -1,11 +1,11 @@
 """A controller YAML (`ddarm tune --out`, `ddarm omega`, or written by hand) read back as the episode it configures.
 
 The file is what `ros2 run ddarm_control <law> --ros-args --params-file` loads: one law's node key, its
-`ros__parameters` with the gains keyed by joint (`gains: {<joint>: {p, d}}`) or positional (`kp`, `kv` in joint
-order), `delay` (formerly `compute_delay_steps`, still read), `period`, and the `urdf` and `motion` the gains were
-tuned for. Read here as the node reads it, so that the episode validated is the one the node would run: every refusal
-names the file and the parameter, and nothing the node would do differently (an ω rule in force, an extra model
-friction) is passed over.
+`ros__parameters` with the gains keyed by joint (`gains: {<joint>: {p, d}}`; the deprecated positional `kp`, `kv`
+in joint order still read, with a notice), `delay` (formerly `compute_delay_steps`, still read), `period`, and the
+`urdf` and `motion` the gains were tuned for. Read here as the node reads it, so that the episode validated is the
+one the node would run: every refusal names the file and the parameter, and nothing the node would do differently
+(an ω rule in force, an extra model friction) is passed over.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 from ddarm.control.laws import CONTROLLERS, MAX_DELAY
 from ddarm.datafiles import PARAMETERS_KEY, is_missing, parameter_document, unreachable
 from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec, read_motion_file
-from ddarm.deprecation import renamed_keys
+from ddarm.deprecation import deprecated_name, renamed_keys
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError
 from ddarm.physics.arm import ModelError, movable_joints
@@ -149,6 +149,7 @@ def _gains(path: str, parameters: dict, joints: tuple[str, ...]) -> tuple[tuple[
     if len(positional) != 2:
         raise GainsFileError(f'gains file {path} has no gains: give gains.<joint>.p and .d for each of {list(joints)}'
                              + (f', or kp with kv (only {positional[0]} is there)' if positional else ''))
+    deprecated_name('kp and kv', 'gains (by joint)', f'gains file {path}')
     if 'joints' in parameters and parameters['joints'] != list(joints):
         raise GainsFileError(f"gains file {path}: joints {parameters['joints']!r}, the order of kp and kv, are not "
                              f'the joints the motion controls {list(joints)}')

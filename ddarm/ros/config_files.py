@@ -37,8 +37,8 @@ class ConfigFile:
 
 GAINS_HEADER = """
 Gains by joint name, as ros2_controllers write them: gains.<joint>.p is K_p, gains.<joint>.d is K_v (each finite and
-> 0; 0 = unset). The positional kp and kv (in the controller's joint order) are read as well; give the gains one
-way, never both. `ddarm tune` and `ddarm omega` write this form, with the urdf and motion the gains were tuned for."""
+> 0; 0 = unset). The positional kp and kv (in the controller's joint order) are deprecated, read as those with a
+notice. `ddarm tune` and `ddarm omega` write this form, with the urdf and motion the gains were tuned for."""
 
 SCHEDULING_EXAMPLES = {'realtime_priority': 50, 'cpu_affinity': [1]}
 
@@ -75,8 +75,8 @@ ros2 run ddarm_tuner tuner --ros-args --params-file config/tuner.yaml
 With the plant and the controller running (ros2 run ddarm_sim plant, ros2 run ddarm_control computed_torque), runs
 one episode per τ under each torque limit, records each as a bag and scores it from the bag. The plant and the
 controller must run the tuner's urdf, model_urdf and motion, or it refuses the episode naming the difference.""",
-        values={'kp': [225.0, 225.0, 225.0], 'kv': [30.0, 30.0, 30.0], 'duration': 1.0,
-                'taus': [0.0, 0.05, 0.1], 'torque_limits': ['none', 'paper']}),
+        gains={'joint1': (225.0, 30.0), 'joint2': (225.0, 30.0), 'joint3': (225.0, 30.0)},
+        values={'duration': 1.0, 'taus': [0.0, 0.05, 0.1], 'torque_limits': ['none', 'paper']}),
 )
 
 
@@ -116,6 +116,11 @@ def render(config: ConfigFile) -> str:
         if parameter.alias_of:
             continue  # a deprecated name: the parameter it names is in the file
         name = parameter.name
+        if name == 'kp' and config.gains:  # the gains by joint, before the deprecated positional form
+            low, high = JOINT_GAINS[0].range
+            lines += _line(indent, 'gains:', f'by joint name: p is K_p, d is K_v, each {low:g} to {high:g} (the '
+                                             'parameters gains.<joint>.p and .d)')
+            lines += [f'{indent}  {joint}: {{p: {p!r}, d: {d!r}}}' for joint, (p, d) in config.gains.items()]
         if name in config.values:
             lines += _line(indent, f'{name}: {_value(config.values[name])}', _note(parameter))
         elif name in config.shown or parameter.default is None or parameter.read_only and parameter.default == '':
@@ -123,11 +128,6 @@ def render(config: ConfigFile) -> str:
             lines += _line(indent, f'{name}: {_value(example)}', _note(parameter), commented=True)
         else:
             lines += _line(indent, f'{name}: {_value(parameter.default)}', _note(parameter))
-        if name == 'joints' and config.gains:
-            low, high = JOINT_GAINS[0].range
-            lines += _line(indent, 'gains:', f'by joint name: p is K_p, d is K_v, each {low:g} to {high:g} (the '
-                                             'parameters gains.<joint>.p and .d)')
-            lines += [f'{indent}  {joint}: {{p: {p!r}, d: {d!r}}}' for joint, (p, d) in config.gains.items()]
     return '\n'.join(lines) + '\n'
 
 

@@ -539,12 +539,11 @@ class GraphDriver(Node):
         client = self.parameter_clients[node]
         self._spin_until(executor, client.services_are_ready, deadline, f'the parameters of {self.node_name(node)}',
                          alive)
-        answer = self._answer(executor, lambda: client.set_parameters(parameters), deadline,
+        # At once: a controller's gains by joint are taken all together or not at all (given_gains).
+        answer = self._answer(executor, lambda: client.set_parameters_atomically(parameters), deadline,
                               f'{self.node_name(node)} to take its parameters', alive)
-        refused = [f'{parameter.name}: {result.reason}'
-                   for parameter, result in zip(parameters, answer.results) if not result.successful]
-        if refused:
-            raise GraphEpisodeError(f'{self.node_name(node)} refused parameters: {refused}')
+        if not answer.result.successful:
+            raise GraphEpisodeError(f"{self.node_name(node)} refused the episode's parameters: {answer.result.reason}")
 
     def run_episode(self, executor, spec: EpisodeSpec, plan: EpisodePlan | None = None,
                     bag: EpisodeBagWriter | None = None, mode: str = 'lockstep', timeout: float = 120.0,

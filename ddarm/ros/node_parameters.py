@@ -8,8 +8,9 @@ from pathlib import Path
 
 from rclpy.parameter import Parameter
 
-from ddarm.episodes.spec import EpisodePlan, EpisodeSpec
+from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, arm_joints
 from ddarm.physics.arm import same_urdf
+from ddarm.ros.interface import flat_parameters
 from ddarm.ros.parameter_schema import read_only
 
 # Lockstep waits this long (wall clock) for a command before the plant ends the episode.
@@ -37,6 +38,12 @@ class SchedulingOptions:
         if node == 'plant':
             values['spin_margin'] = self.spin_margin
         return {name: value for name, value in values.items() if value is not None}
+
+
+def gains_parameters(spec: EpisodeSpec) -> dict:
+    """The episode's gains as a controller node holds them: by joint name, `gains: {<joint>: {p: K_p, d: K_v}}`."""
+    joints = arm_joints(spec)[0]
+    return {'gains': {joint: {'p': float(p), 'd': float(d)} for joint, p, d in zip(joints, spec.kp, spec.kv)}}
 
 
 def arm_parameters(spec: EpisodeSpec) -> dict[str, dict[str, str]]:
@@ -82,8 +89,7 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
                 'viscous_friction': spec.viscous_friction, 'coulomb_friction': spec.coulomb_friction,
                 'external_torque': spec.external_torque, 'mass_scale': spec.mass_scale}
     plant.update({name: [float(x) for x in value] for name, value in optional.items() if value is not None})
-    controller = {'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0, 'delay': spec.delay,
-                  'period': spec.period}
+    controller = {**gains_parameters(spec), 'omega': 0.0, 'delay': spec.delay, 'period': spec.period}
     # The in-process runner gives computed torque the plant's friction as its model F̂; so does this.
     controller.update({name: list(getattr(spec, name)) for name in ('viscous_friction', 'coulomb_friction')
                        if getattr(spec, name) is not None})
@@ -97,10 +103,10 @@ def node_parameters(spec: EpisodeSpec, plan: EpisodePlan, mode: str = 'lockstep'
 
 
 def service_parameters(values: dict, clear: tuple[str, ...], node: str) -> list[Parameter]:
-    """Parameters to set at run time on a `node` ('plant' or 'controller'): its read-only ones (the schema's) left
-    out, unset per-joint options cleared."""
+    """Parameters to set at run time on a `node` ('plant' or 'controller'), from its `ros__parameters` (nested
+    mappings as dotted names): its read-only ones (the schema's) left out, unset per-joint options cleared."""
     fixed = read_only(node)
-    parameters = [Parameter(name, value=value) for name, value in values.items() if name not in fixed]
+    parameters = [Parameter(name, value=value) for name, value in flat_parameters(values).items() if name not in fixed]
     parameters += [Parameter(name, Parameter.Type.DOUBLE_ARRAY, []) for name in clear if name not in values]
     return parameters
 

@@ -162,8 +162,10 @@ CONTROLLER = (
        'stretched to it); 0 = the motion file\'s own', 'controller', 's', (0.0, MAX_NODE_DURATION), read_only=True),
     _p('joints', 'string[]', None, 'joint names in URDF order, the order of kp and kv (unset: from the motion file, '
        'else the URDF)', 'controller', read_only=True),
-    _p('kp', 'double[]', None, 'K_p diagonal, one positive value per joint (or gains.<joint>.p)', 'controller'),
-    _p('kv', 'double[]', None, 'K_v diagonal, one positive value per joint (or gains.<joint>.d)', 'controller'),
+    _p('kp', 'double[]', None, 'deprecated: K_p diagonal in joint order, read as gains.<joint>.p (with a notice)',
+       'controller'),
+    _p('kv', 'double[]', None, 'deprecated: K_v diagonal in joint order, read as gains.<joint>.d (with a notice)',
+       'controller'),
     _p('omega', 'double', 0.0, 'ω rule of section 2 when > 0 (overrides kp, kv and gains)', 'controller', 'rad/s',
        (0.0, 1e4)),
     CONTROLLER_DELAY,
@@ -203,18 +205,21 @@ CONTROLLER = (
        'controller', read_only=True),
 )
 
-# Declared by a controller at configure, one pair per controlled joint (the joints are known only then).
+# One pair per controlled joint, declared by a controller at configure and by the tuner at start (the joints are
+# known only once the URDF and the motion are read).
 JOINT_GAINS = (
-    _p('gains.{joint}.p', 'double', 0.0, 'K_p of {joint}, > 0 (0 = unset: kp/kv or omega give the gains)',
-       'controller', range_=(0.0, MAX_GAIN)),
-    _p('gains.{joint}.d', 'double', 0.0, 'K_v of {joint}, > 0 (0 = unset: kp/kv or omega give the gains)',
-       'controller', range_=(0.0, MAX_GAIN)),
+    _p('gains.{joint}.p', 'double', 0.0, 'K_p of {joint}, > 0 (0 = unset)', 'controller tuner',
+       range_=(0.0, MAX_GAIN)),
+    _p('gains.{joint}.d', 'double', 0.0, 'K_v of {joint}, > 0 (0 = unset)', 'controller tuner',
+       range_=(0.0, MAX_GAIN)),
 )
 
 TUNER = (
     _p('controller', 'string', 'computed_torque', f'the law to drive: one of {CONTROLLERS}', 'tuner'),
-    _p('kp', 'double[]', None, 'K_p diagonal (unless gains_file)', 'tuner'),
-    _p('kv', 'double[]', None, 'K_v diagonal (unless gains_file)', 'tuner'),
+    _p('kp', 'double[]', None, 'deprecated: K_p diagonal in joint order, read as gains.<joint>.p (with a notice)',
+       'tuner'),
+    _p('kv', 'double[]', None, 'deprecated: K_v diagonal in joint order, read as gains.<joint>.d (with a notice)',
+       'tuner'),
     _p('gains_file', 'string', '', 'controller parameter YAML (gains, delay, period)', 'tuner'),
     _p('urdf', 'string', '', 'URDF of the plant\'s arm ("" = the ddarm arm); the plant node must run it', 'tuner',
        read_only=True),

@@ -44,6 +44,7 @@ from ddarm.ros.executors import node_executor
 from ddarm.ros.lifetime import stop_processes
 from ddarm.ros.interface import CLOCK_QOS, DIAGNOSTICS_QOS, ROBOT_COMMAND_QOS, SAMPLE_QOS, reference_msg
 from ddarm.ros.names import namespace_arguments
+from ddarm.ros.node_parameters import gains_parameters
 from ddarm.ros.session import node_environment, session_namespace
 
 MODES = ('lockstep', 'realtime')
@@ -80,7 +81,7 @@ def controller_node_parameters(spec: EpisodeSpec, mode: str) -> dict:
     (position and velocity limits) stay on, as on a robot."""
     urdf = spec.model_urdf or spec.urdf
     parameters = {'urdf': str(Path(urdf).resolve()) if urdf else '', 'motion': str(Path(spec.motion).resolve()),
-                  'duration': float(spec.duration), 'kp': list(spec.kp), 'kv': list(spec.kv), 'omega': 0.0,
+                  'duration': float(spec.duration), **gains_parameters(spec), 'omega': 0.0,
                   'delay': spec.delay, 'period': spec.period, 'sampling': 'timer',
                   'command_type': 'float64_multi_array', 'command_topic': ROBOT_COMMANDS_TOPIC.lstrip('/'),
                   'clamp_efforts': False, 'use_sim_time': mode == 'lockstep'}

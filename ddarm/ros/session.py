@@ -19,7 +19,7 @@ from ddarm.ros.executors import node_executor
 from ddarm.ros.lifetime import child_environment, stop_processes
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, SchedulingOptions, arm_parameters,
-                                       episode_record)
+                                       episode_record, gains_parameters)
 from ddarm.recording.bags import EpisodeBagWriter, checked_output_path
 from ddarm.episodes.engine import warm_up
 from ddarm.episodes.result import Episodes
@@ -31,6 +31,9 @@ from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
 # when its lease runs out if the goodbye was lost (a loaded machine) or it was killed; the next law's start waits
 # for that (GraphDriver.wait_until_gone), so the lease is a few seconds, well within DEPARTURE_TIMEOUT. A live node
 # loses its place only after NODE_LEASE_S without one of its renewals, sent every NODE_LEASE_RENEWAL_S.
+# A controller started for an episode template (`prepare`) runs the ω rule at the paper's ω until the driver sets
+# an episode's gains: it needs gains to configure, and the template has none.
+TEMPLATE_OMEGA = 15.0
 NODE_LEASE_S = 5
 NODE_LEASE_RENEWAL_S = 1
 # Where Fast DDS reads a participant's default profile from (older and newer names); a user's own file is kept.
@@ -137,7 +140,8 @@ class GraphSession:
             self._start('plant', ['ddarm_sim.node'], {'autostart': False, 'required_subscribers': GRAPH_SUBSCRIBERS,
                                                        'command_timeout': COMMAND_TIMEOUT}, arms['plant'])
         if law not in self.processes:
-            self._start(law, ['ddarm_control.node', law], {'kp': list(spec.kp), 'kv': list(spec.kv)}, arms[law])
+            gains = {'omega': TEMPLATE_OMEGA} if spec.is_template else gains_parameters(spec)
+            self._start(law, ['ddarm_control.node', law], gains, arms[law])
 
     def prepare(self, spec: EpisodeSpec) -> None:
         """The nodes of `spec` started (`use_nodes`) without waiting for them: they come up while this process works."""

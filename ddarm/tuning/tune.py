@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -113,8 +113,3 @@ def _timed_search(template: EpisodeSpec, **arguments) -> tuple[SearchResult, flo
     started = time.perf_counter()
     result = search_gains(template, **arguments)
     return result, time.perf_counter() - started
-
-
-def with_gains(template: EpisodeSpec, kp, kv) -> EpisodeSpec:
-    """The template with these gains."""
-    return replace(template, kp=tuple(np.asarray(kp, dtype=float)), kv=tuple(np.asarray(kv, dtype=float)))
