@@ -24,3 +24,15 @@ def test_docs_ros_interface_md_is_the_nodes_as_they_declare_themselves():
     from ddarm.cli.docs import ROS_PAGE, ros_interface
 
     assert ROS_PAGE.read_text() == ros_interface(), 'docs/ros-interface.md is out of date: run make docs'
+
+
+def test_the_episode_options_table_of_the_model_specification_is_the_episodes_defaults():
+    from ddarm.cli.docs import EPISODE_OPTIONS, SPEC_PAGE, specification_page
+    from ddarm.episodes.spec import EPISODE_DEFAULTS, EpisodeSpec
+
+    assert SPEC_PAGE.read_text() == specification_page(), 'docs/model-specification.md §14 is out of date: run make docs'
+    # Every field of the episode is on it (kv on kp's row, coulomb_friction on viscous_friction's, mjcf_joints on
+    # mjcf's), its default EPISODE_DEFAULTS'.
+    named = {field for field, _, _ in EPISODE_OPTIONS}
+    assert named == set(EpisodeSpec.__dataclass_fields__) - {'kv', 'coulomb_friction', 'mjcf_joints'}
+    assert EPISODE_DEFAULTS['delay'] == 1 and '| delay d | 1 |' in SPEC_PAGE.read_text()
