@@ -19,6 +19,8 @@ MAX_REFERENCE_POINTS = 1_000_000
 MAX_SAMPLES = 1_000_000
 # Δ in s: below a microsecond no controller samples, and T/Δ, ω* = ωΔ*/Δ stay far from overflow.
 PERIOD_RANGE = (1e-6, 10.0)
+# Δ in s: the paper's 100 Hz, every episode's (and so every node's) default.
+DEFAULT_PERIOD = 0.01
 # The fields of a reference point, in the order a reference holds them: q^d, q̇^d, q̈^d, P^nom.
 REFERENCE_FIELDS = ('positions', 'velocities', 'accelerations', 'effort')
 

@@ -19,7 +19,7 @@ from ddarm.physics.arm import Arm, ModelError, load_arm, movable_joints
 from ddarm.physics.dynamics import Chain, load_chain
 from ddarm.physics.mujoco_plant import Robot, RobotError, load_robot
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_SUBSTEPS, PlantError, PlantOptions, checked_mass_scale
-from ddarm.samples import MAX_SAMPLES, PERIOD_RANGE
+from ddarm.samples import DEFAULT_PERIOD, MAX_SAMPLES, PERIOD_RANGE
 
 # T in s, a motion file's too: hours of motion, and T/Δ is computed without overflow at every Δ of PERIOD_RANGE.
 MAX_DURATION = 10_000.0
@@ -55,7 +55,7 @@ class EpisodeSpec:
     kv: tuple[float, ...] | None = None  # K_v diagonal, likewise
     trajectory: int = 1  # the paper's motion, when no motion file is given
     duration: float | None = None  # T; None: the motion's own (a bang-bang motion is stretched to T)
-    period: float = 0.01
+    period: float = DEFAULT_PERIOD
     delay: int = 1
     tau: float = 0.0
     torque_limit: str | tuple[float, ...] = 'none'  # 'none', 'paper' (2 x max nominal), 'urdf' or N m per joint

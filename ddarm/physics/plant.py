@@ -16,7 +16,7 @@ import numpy as np
 from ddarm.arrays import per_joint
 from ddarm.errors import DdarmError
 from ddarm.physics.dynamics import Chain, cached_njit, compiled_dynamics, typed_entry
-from ddarm.samples import PERIOD_RANGE
+from ddarm.samples import DEFAULT_PERIOD, PERIOD_RANGE
 
 # RK4 steps per sampling period. 8 keeps the indices within 1e-6 relative of a 40-step
 # reference for the ω-rule gains in the paper's settings (test_batch.py shows it). Episodes
@@ -52,7 +52,7 @@ class PlantOptions:
     torque.
     """
 
-    period: float = 0.01
+    period: float = DEFAULT_PERIOD
     substeps: int = DEFAULT_SUBSTEPS
     torque_limit: np.ndarray | None = None
     viscous_friction: np.ndarray | None = None

@@ -32,7 +32,7 @@ from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, CONTROLLER_OPTIONAL, PLANT_OPTIONAL,
                                        SchedulingOptions, arm_parameters, node_parameters, same_read_only,
                                        service_parameters)
-from ddarm.samples import MessageError, stamp_ns
+from ddarm.samples import DEFAULT_PERIOD, MessageError, stamp_ns
 from ddarm.recording.bags import BagError, EpisodeBagWriter
 from ddarm.episodes.result import Episodes, RecordingError
 from ddarm.episodes.spec import EpisodePlan, EpisodeSpec, check_episode
@@ -180,7 +180,7 @@ class GraphDriver(Node):
         self.joints: list[str] = []  # the episode's joints (its plan's), in the order of every per-joint array
         self.recording: Recording | None = None
         self.bag: EpisodeBagWriter | None = None
-        self.period = 0.01
+        self.period = DEFAULT_PERIOD  # until an episode sets its own
         self.reference_publisher = self.create_publisher(JointTrajectory, REFERENCE_TOPIC, REFERENCE_QOS)
         self.subscriptions_by_topic = {
             # The messages of every sample come serialized: what the bag records, read whole only after the episode.
