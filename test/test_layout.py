@@ -31,8 +31,8 @@ def test_no_core_module_loads_rclpy(module):
 # The layers, upstream first: a module may import its own layer and the ones before it, never a later one.
 LAYERS = (
     # ddarm.reporting.text, how text from files is shown, imports nothing of ddarm: recording's refusals show names.
-    ('ddarm.errors', 'ddarm.arrays', 'ddarm.samples', 'ddarm.datafiles', 'ddarm.strict_json', 'ddarm.interrupts', 'ddarm.realtime',
-     'ddarm.reporting.text'),
+    ('ddarm.errors', 'ddarm.deprecation', 'ddarm.arrays', 'ddarm.samples', 'ddarm.datafiles', 'ddarm.strict_json',
+     'ddarm.interrupts', 'ddarm.realtime', 'ddarm.reporting.text'),
     ('ddarm.physics',),
     ('ddarm.motion',),
     ('ddarm.control',),
