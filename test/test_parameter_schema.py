@@ -177,6 +177,11 @@ def test_a_deprecated_name_sets_the_parameter_it_names_at_start_and_at_run_time_
         assert not refused.successful and node.controller.delay == 1
     finally:
         node.destroy_node()
+    node = ControllerNode('pd_gravity', context=ros_context, parameter_overrides=overrides({**GAINS, 'delay': 2}))
+    try:
+        assert node.get_parameter('compute_delay_steps').value == 2 == node.controller.delay  # mirrored from start
+    finally:
+        node.destroy_node()
     with pytest.raises(Exception, match='delay given twice'):
         ControllerNode('pd_gravity', context=ros_context,
                        parameter_overrides=overrides({**GAINS, 'compute_delay_steps': 0, 'delay': 2}))

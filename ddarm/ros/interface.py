@@ -297,14 +297,14 @@ def declare_from_schema(node, kind: str, refused: type[Exception]) -> None:
     defaults = {parameter.name: parameter.default for parameter in parameters_of(kind)}
     for old, new in aliases(kind).items():
         given, current = node.get_parameter(old).value, node.get_parameter(new).value
-        if given == defaults[old]:
-            continue
-        if current != defaults[new] and current != given:
-            node.destroy_node()
-            raise refused(f'{new} given twice, as {new} ({current}) and by its deprecated name {old} ({given}): '
-                          f'give {new} only')
-        node.get_logger().warning(deprecation_notice(old, new, f'{kind} parameter'))
-        node.set_parameters([Parameter(new, value=given)])
+        if given != defaults[old]:
+            if current != defaults[new] and current != given:
+                node.destroy_node()
+                raise refused(f'{new} given twice, as {new} ({current}) and by its deprecated name {old} ({given}): '
+                              f'give {new} only')
+            node.get_logger().warning(deprecation_notice(old, new, f'{kind} parameter'))
+            current = given
+        node.set_parameters([Parameter(new, value=current), Parameter(old, value=current)])  # the old mirrors it
 
 
 def mirrored_aliases(node, kind: str, parameters: list) -> list:
