@@ -41,7 +41,6 @@ from ddarm.arrays import per_joint
 from ddarm.control.gains import gains_from_parameters
 from ddarm.control.laws import (CONTROLLERS, GainError, Measurement, ReferencePoint, SampledController,
                                 checked_delay, checked_friction, gravity_feedforward, make_law, warm_up)
-from ddarm.deprecation import deprecation_notice
 from ddarm.errors import DdarmError
 from ddarm.motion.files import MotionFile, load_motion, motion_of_duration
 from ddarm.motion.programmed import MotionError, nominal_torque
@@ -52,7 +51,8 @@ from ddarm.ros.interface import (COMMAND_TYPES, DIAGNOSTICS_QOS, DIAGNOSTICS_TOP
                                      JOINT_STATES_TOPIC, REFERENCE_QOS, REFERENCE_TOPIC, ROBOT_COMMAND_QOS,
                                      ROBOT_STATE_QOS, SAMPLE_QOS, Reference, RobotLimits, RobotState, declare_from_schema,
                                      declare_joint_gains,
-                                     effort_array_msg, gain_joint, gain_parameter, given_gains, plain_parameters,
+                                     effort_array_msg, gain_joint, gain_parameter, given_gains, keyed_gains_given,
+                                     plain_parameters, POSITIONAL_GAINS, positional_gains, positional_gains_notice,
                                      proposed_values, read_joint_state, read_reference, read_robot_state,
                                      refuse_undeclared_parameters, undeclared_overrides,
                                      unknown_parameters_reason)
@@ -178,9 +178,8 @@ class ControllerNode(ManagedNode):
         if unknown:
             raise GainError(f'unknown parameters {unknown_parameters_reason(unknown, law, self.joints)}')
         values = proposed_values(self, ())
-        held = [Parameter(name, value=[float(x) for x in values[name]]) for name in ('kp', 'kv')
-                if values[name] is not None and len(values[name])]
-        if held and not any(values[name] for name in values if gain_joint(name) is not None):
+        held = [Parameter(name, value=[float(x) for x in values[name]]) for name in positional_gains(values)]
+        if held and not keyed_gains_given(values):
             self.set_parameters_atomically(held)  # given at start: read as the gains by joint (_keyed_gains)
             values = proposed_values(self, ())
         self.period = values['period']
@@ -311,8 +310,8 @@ class ControllerNode(ManagedNode):
         for the check to refuse naming it."""
         names = {parameter.name for parameter in parameters}
         keyed = {gain_parameter(joint, key) for joint in self.joints for key in GAIN_KEYS}
-        positional = [parameter for parameter in parameters if parameter.name in ('kp', 'kv')
-                      and parameter.value is not None and len(parameter.value)]
+        given = positional_gains({parameter.name: parameter.value for parameter in parameters})
+        positional = [parameter for parameter in parameters if parameter.name in given]
         if not self.joints or not positional or not names.isdisjoint(keyed):
             return parameters
         converted = []
@@ -321,12 +320,10 @@ class ControllerNode(ManagedNode):
                 values = per_joint(parameter.name, parameter.value, len(self.joints), GainError, positive=True)
             except GainError:
                 return parameters
-            key = GAIN_KEYS[('kp', 'kv').index(parameter.name)]
-            converted += [Parameter(gain_parameter(joint, key), value=float(value))
+            converted += [Parameter(gain_parameter(joint, POSITIONAL_GAINS[parameter.name]), value=float(value))
                           for joint, value in zip(self.joints, values)]
             converted.append(Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY, []))
-            self.get_logger().warning(deprecation_notice(parameter.name, f'gains.<joint>.{key}',
-                                                         f'{self.law_name} parameter'))
+            self.get_logger().warning(positional_gains_notice(parameter.name, f'{self.law_name} parameter'))
         return [parameter for parameter in parameters if parameter not in positional] + converted
 
     def _robot_limits(self, values: dict) -> RobotLimits:
@@ -370,9 +367,8 @@ class ControllerNode(ManagedNode):
             return SetParametersResult(successful=True)
         values = proposed_values(self, changes)
         try:
-            for name in ('kp', 'kv'):  # a positional diagonal not read as gains by joint: refused naming it
-                if values[name] is not None and len(values[name]):
-                    per_joint(name, values[name], len(self.joints), GainError, positive=True)
+            for name in positional_gains(values):  # a positional diagonal not read as gains by joint: refused naming it
+                per_joint(name, values[name], len(self.joints), GainError, positive=True)
             effective_gains(self.law_name, values, self.model, self.reference, given_gains(values, self.joints))
             checked_delay(values['delay'])
             self._friction(values)

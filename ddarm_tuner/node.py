@@ -10,12 +10,13 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.signals import SignalHandlerOptions
 
 from ddarm.control.laws import CONTROLLERS, GainError
-from ddarm.deprecation import deprecation_notice, renamed_keys
+from ddarm.deprecation import renamed_keys
 from ddarm.ros.executable import run_executable
 from ddarm.ros.executors import node_executor
 from ddarm.ros.parameter_files import parameter_document
-from ddarm.ros.interface import (GAIN_KEYS, declare_from_schema, declare_joint_gains, flat_parameters, gain_joint,
-                                 given_gains, proposed_values, refuse_undeclared_parameters, undeclared_overrides)
+from ddarm.ros.interface import (declare_from_schema, declare_joint_gains, flat_parameters, given_gains,
+                                 keyed_gains_given, positional_gains, positional_gains_notice, proposed_values,
+                                 refuse_undeclared_parameters, undeclared_overrides)
 from ddarm.recording.bags import STORAGES, BagError, score_bag
 from ddarm.recording.gains_file import CONTROLLER_RENAMED
 from ddarm.episodes.indices import INDICES
@@ -92,15 +93,15 @@ class TunerNode(GraphDriver):
                                        f"{gains[name]!r}; the sweep's is {wanted[name]!r}: set urdf, model_urdf "
                                        'and motion to match')
             return kp, kv, delay
-        positional = [name for name in ('kp', 'kv') if values[name] is not None and len(values[name])]
-        if not positional and not any(values[name] for name in values if gain_joint(name) is not None):
+        positional = positional_gains(values)
+        if not positional and not keyed_gains_given(values):
             raise EpisodeError(f'set the gains: gains.<joint>.p and .d for each joint of {self.joints}, or gains_file')
         try:
             kp, kv = given_gains({**values, 'omega': 0.0}, self.joints)
         except GainError as error:
             raise EpisodeError(str(error)) from error
-        for name, key in zip(positional, GAIN_KEYS):
-            self.get_logger().warning(deprecation_notice(name, f'gains.<joint>.{key}', 'tuner parameter'))
+        for name in positional:
+            self.get_logger().warning(positional_gains_notice(name, 'tuner parameter'))
         return kp, kv, values['delay']
 
     def _episode_specs(self) -> list[tuple[str, EpisodeSpec]]:

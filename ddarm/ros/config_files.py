@@ -81,8 +81,9 @@ controller must run the tuner's urdf, model_urdf and motion, or it refuses the e
 
 
 def _value(value) -> str:
+    # A scalar is dumped as a document with its end marker, `value\n...`: the marker is not the value's.
     return yaml.safe_dump(value, default_flow_style=True, width=10_000, allow_unicode=True).strip().removesuffix(
-        '\n...').removesuffix('...').strip()
+        '\n...')
 
 
 def _note(parameter: NodeParameter) -> str:

@@ -352,6 +352,25 @@ def gain_joint(name: str) -> str | None:
     return joint if head == GAINS_PREFIX and dot and joint and key in GAIN_KEYS else None
 
 
+# The deprecated positional diagonals, each with the key of gains.<joint>.<key> it is read as.
+POSITIONAL_GAINS = dict(zip(('kp', 'kv'), GAIN_KEYS))
+
+
+def positional_gains(values: dict) -> list[str]:
+    """Which of the positional kp and kv `values` (a node's, flat) give: set and not empty."""
+    return [name for name in POSITIONAL_GAINS if values.get(name) is not None and len(values[name])]
+
+
+def keyed_gains_given(values: dict) -> bool:
+    """Whether `values` give any gains.<joint>.p or .d (0 is unset)."""
+    return any(value for name, value in values.items() if gain_joint(name) is not None)
+
+
+def positional_gains_notice(name: str, where: str) -> str:
+    """The one line that says a positional diagonal is read as the gains by joint."""
+    return deprecation_notice(name, f'gains.<joint>.{POSITIONAL_GAINS[name]}', where)
+
+
 def given_gains(values: dict, joints: list[str]) -> tuple:
     """(kp, kv) as a controller's parameters give them (flat names, as a node holds them: `flat_parameters`):
     by joint name (gains.<joint>.p and .d, every joint's or none) or the positional kp and kv (None where
@@ -366,7 +385,7 @@ def given_gains(values: dict, joints: list[str]) -> tuple:
     keyed = {gain_parameter(joint, key): values.get(gain_parameter(joint, key), 0.0)
              for joint in joints for key in GAIN_KEYS}
     set_keyed = [name for name, value in keyed.items() if value != 0.0]
-    positional = [name for name in ('kp', 'kv') if values.get(name) is not None and len(values[name])]
+    positional = positional_gains(values)
     if set_keyed and positional:
         more = f' and {len(set_keyed) - 1} more gains.<joint> parameters' if len(set_keyed) > 1 else ''
         raise GainError(f'gains given twice: by {" and ".join(positional)} and by {set_keyed[0]}{more}; give '
