@@ -130,10 +130,6 @@ class EpisodeSpec:
         """The episode of this template (or spec) with these gains."""
         return replace(self, kp=tuple(np.asarray(kp, dtype=float)), kv=tuple(np.asarray(kv, dtype=float)))
 
-    def template(self) -> EpisodeSpec:
-        """This episode without its gains."""
-        return replace(self, kp=None, kv=None)
-
 
 # The episode's defaults, by field: what the CLI, campaign files, controller YAMLs and the nodes' parameters
 # (ddarm.ros.parameter_schema) default to.

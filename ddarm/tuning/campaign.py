@@ -1,5 +1,5 @@
-"""A campaign: many `ddarm tune` jobs (arms × motions × controllers × scenarios, and/or listed jobs) from one YAML file,
-their searches run as independent jobs, each job's best gains then recorded once as a bag and scored from it.
+"""A campaign: many `ddarm tune` jobs (arms × motions × controllers × scenarios, and/or listed jobs) from one YAML
+file, their searches run as independent jobs, each job's best gains then recorded once as a bag and scored from it.
 
 The file is read strictly and every job is checked (its episode, its search's arguments) before any search
 starts: a refusal names the file and the key or job. A job's search is `ddarm tune`'s (ddarm.tuning.tune.tune),
