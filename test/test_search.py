@@ -129,6 +129,8 @@ def test_the_other_methods_give_no_certificate():
 class _Bowl:
     """A stand-in for the search's objective: 1 + |x|^2 over log gains, its points and values kept."""
 
+    scenarios = (None,)
+
     def __init__(self, budget: int) -> None:
         self.remaining, self.calls, self.points, self.values = budget, 0, [np.full((1, 4), 0.3)], [np.array([1.36])]
 
@@ -146,8 +148,13 @@ class _Bowl:
 
 def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to_cmas_end():
     stalled, full = _Bowl(100_000), _Bowl(100_000)
-    best, stopped_by = search._polish(stalled, 0, np.random.default_rng(0), 0.1, search.POLISH_STALL)
-    assert stopped_by == ('stalled',) and search._polish(full, 0, np.random.default_rng(0), 0.1)[1] == ('converged',)
+
+    def polish(bowl, stall=None):
+        run = search._polish(search._Allowance(bowl), *bowl.history_points(), np.random.default_rng(0), 0.1, stall)
+        return search._run_alone(bowl, run)
+
+    best, stopped_by = polish(stalled, search.POLISH_STALL)
+    assert stopped_by == ('stalled',) and polish(full)[1] == ('converged',)
     assert search.STALL_CALLS < stalled.calls < full.calls and full.remaining > 0
     # It stopped at the first call whose best had improved by less than the stall over the last STALL_CALLS calls.
     bests = np.minimum.accumulate([values.min() for values in stalled.values[1:]])
@@ -185,3 +192,73 @@ def test_the_report_names_the_final_polish_beside_the_runs_it_is_not_one_of(poli
     lines = certificate_section(certificate.to_dict(), 'I')
     assert line in lines and not any('final CMA-ES polish' in text for text in lines)  # not a row of the runs
     assert certificate.within(0.005) == 2 and certificate.best == 1.0  # the polish is not a run
+
+
+def _bowl_run(bowl, kind):
+    """One of the search's runs on `bowl`: Nelder-Mead from two starts, a polish, or a DE run over a box."""
+    if kind == 'nelder-mead':
+        return search._nelder_mead(search._Allowance(bowl), np.array([[0.3, -0.2, 0.5, 0.1], [-1.0, 1.0, 0.4, 0.0]]),
+                                   0.5)
+    if kind == 'polish':
+        return search._polish(search._Allowance(bowl), *bowl.history_points(), np.random.default_rng(5), 0.1)
+    return search._evolution(search._Allowance(bowl), (np.full(4, -2.0), np.full(4, 2.0)), 5,
+                             np.random.default_rng(7), 'DE')
+
+
+def test_runs_side_by_side_find_what_each_finds_alone_in_fewer_batches():
+    alone, calls = {}, 0
+    for kind in ('nelder-mead', 'polish', 'evolution'):
+        alone[kind] = search._run_alone(bowl := _Bowl(100_000), _bowl_run(bowl, kind))
+        calls += bowl.calls
+    together = _Bowl(100_000)
+    found = search._side_by_side(together, [_bowl_run(together, kind) for kind in alone])
+    for kind, result in zip(alone, found):
+        np.testing.assert_equal(result, alone[kind])
+    assert together.calls < calls
+
+
+def test_a_de_run_in_its_thread_is_scipys_own_and_leaves_no_thread():
+    import threading
+
+    import scipy.optimize
+    bowl, populations = _Bowl(100_000), []
+
+    def bowl_values(population):
+        populations.append(population.T.copy())
+        return 1.0 + np.sum(population.T ** 2, axis=1)
+
+    restart, generations = search._run_alone(bowl, _bowl_run(bowl, 'evolution'))
+    direct = scipy.optimize.differential_evolution(
+        bowl_values, [(-2.0, 2.0)] * 4, vectorized=True, updating='deferred', popsize=5,
+        maxiter=search.DE_GENERATIONS, tol=search.DE_TOL, polish=False, rng=np.random.default_rng(7))
+    assert generations == direct.nit and restart.stopped_by == ('tol',)
+    for asked, evaluated in zip(bowl.points[1:], populations, strict=False):
+        np.testing.assert_array_equal(asked, evaluated)
+    assert len(bowl.points) > len(populations) + 1  # the polish after it
+    assert not any(thread.name == 'DE' for thread in threading.enumerate())
+
+
+@pytest.mark.parametrize('budget', [60, 400])
+def test_a_budget_ends_runs_side_by_side_within_it_and_their_threads(budget):
+    import threading
+    bowl = _Bowl(budget)
+    search._side_by_side(bowl, [_bowl_run(bowl, kind) for kind in ('nelder-mead', 'evolution', 'polish')])
+    assert 0 <= bowl.remaining and not any(thread.name == 'DE' for thread in threading.enumerate())
+
+
+def test_a_search_stopped_midway_leaves_no_thread_behind():
+    import threading
+
+    class Stopped(Exception):
+        pass
+
+    class Stopping(_Bowl):
+        def __call__(self, points):
+            if self.calls == 3:
+                raise Stopped
+            return super().__call__(points)
+
+    bowl = Stopping(100_000)
+    with pytest.raises(Stopped):
+        search._side_by_side(bowl, [_bowl_run(bowl, kind) for kind in ('evolution', 'nelder-mead')])
+    assert not any(thread.name == 'DE' for thread in threading.enumerate())

@@ -1,17 +1,18 @@
 """Optimisation of the indices I1 (2.5), I2 or I (3.2) over the 2n diagonal gains (spec §9), through the batch engine.
 
 Every method searches x = (log k_p, log k_v), so every point is a valid positive gain and a
-step means the same relative change for a large and a small gain. Every evaluation of an
-iteration (a CMA-ES population; the moves of all Nelder-Mead starts) is one batch call.
+step means the same relative change for a large and a small gain. Every run asks for its points in rounds (a
+CMA-ES population; a DE generation; the next move of every Nelder-Mead simplex), and the runs that go on side by
+side share one batch call per round (`_side_by_side`).
 
 `global` (the default of `ddarm tune` and `ddarm reproduce`) is a portfolio of independent runs, because each kind
 finds basins the others miss (on cases outside the paper's tables, differential evolution from three seeds landed in
-one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First a
-differential evolution run (scipy's) from the best start, polished by local CMA-ES runs from its best distinct
-points; then Nelder-Mead from every ω-rule start, the law's own rule and the other law's, all side by side in one
-batch per step, the simplices' best distinct ends polished the same way; then, by turns, wide CMA-ES runs of
-doubling population (IPOP-CMA-ES) and further differential evolutions over a wider box, each from its own draws.
-After each run a `Certificate` says how sure the search is: every run's best, the basins they ended in, how many
+one basin where Nelder-Mead from the ω-rule gains found one 22-50 % deeper, and on other cases the reverse). First,
+side by side: a differential evolution run (scipy's) from the best start, polished by local CMA-ES runs from its best
+distinct points; Nelder-Mead from every ω-rule start, the law's own rule and the other law's, the simplices' best
+distinct ends then polished the same way; and a wide CMA-ES run. Then, one at a time, further differential
+evolutions over a wider box and wide CMA-ES runs of doubling population (IPOP-CMA-ES), by turns, each from its own
+draws. After each run a `Certificate` says how sure the search is: every run's best, the basins they ended in, how many
 agree with the best.
 The search stops once the certificate holds, or when the budget, a ceiling, has no room for another run; a result
 that has not converged says so. On arms of 4 joints or more the polishes stop once they creep, and a final polish
@@ -20,6 +21,8 @@ of the best point, outside the certificate, refines the minimum on the budget le
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -436,9 +439,9 @@ def search_gains(template: EpisodeSpec, *, index: str, start_kp, start_kv, budge
                                                      DE_POPSIZE if popsize is None else int(popsize))
         return objective.result(method, index, restarts, generations, certificate)
     if method == 'nelder-mead':
-        _nelder_mead(objective, starts, step)
+        _run_alone(objective, _nelder_mead(_Allowance(objective), starts, step))
     else:
-        _cma(objective, starts, step, seed, popsize)
+        _run_alone(objective, _cma(_Allowance(objective), starts, step, seed, popsize))
     return objective.result(method, index)
 
 
@@ -506,14 +509,16 @@ def search_box(starts: np.ndarray, spread: float = GAIN_SPREAD) -> tuple[np.ndar
     return low, np.minimum(starts.max(axis=0) + widening, np.log(GAIN_RANGE[1]))
 
 
-def cma_options(rng, popsize: int | None = None, tolx: float | None = None) -> dict:
-    """cma's options for a search over log gains: GAIN_RANGE, draws from `rng`, silent; cma's defaults unless given."""
+def cma_options(rng, popsize: int | None = None, tolx: float | None = None, bounded: bool = True) -> dict:
+    """cma's options for a search over log gains: within GAIN_RANGE (unless not `bounded`), draws from `rng`, silent;
+    cma's defaults unless given."""
     options = {
-        'bounds': [np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])],
         # Draws from a private generator: NaN keeps cma from seeding NumPy's global one.
         'randn': lambda *shape: rng.standard_normal(shape), 'seed': np.nan,
         'verbose': -9, 'verb_log': 0, 'verb_disp': 0,
     }
+    if bounded:
+        options['bounds'] = [np.log(GAIN_RANGE[0]), np.log(GAIN_RANGE[1])]
     if popsize is not None:
         options['popsize'] = int(popsize)
     if tolx is not None:
@@ -521,23 +526,92 @@ def cma_options(rng, popsize: int | None = None, tolx: float | None = None) -> d
     return options
 
 
-class _Share:
-    """The objective with at most `points` more points evaluated through it: one phase's or run's share of the
-    budget."""
+class _BudgetEnded(Exception):
+    """Thrown into a run whose points the budget left has no room for: the run ends there."""
 
-    def __init__(self, objective: _Objective, points: int) -> None:
-        self.objective, self.scenarios = objective, objective.scenarios
-        self.reserve = max(0, objective.remaining - points)  # what the rest of the search keeps
+
+class _Allowance:
+    """One run's or phase's share of the budget: at most `points` more points (None: all the objective has left),
+    never more than the objective has left; keeps the points evaluated through it and their values, for a polish
+    to pick its finalists from."""
+
+    def __init__(self, objective: _Objective, points: int | None = None) -> None:
+        self.objective, self.limit, self.spent = objective, points, 0
+        self.points: list[np.ndarray] = []
+        self.values: list[np.ndarray] = []
 
     @property
     def remaining(self) -> int:
-        return self.objective.remaining - self.reserve
+        left = self.objective.remaining
+        return left if self.limit is None else min(left, self.limit - self.spent)
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        return self.objective(points)
+    @property
+    def episodes(self) -> int:
+        return self.spent * len(self.objective.scenarios)
 
-    def history_points(self, since: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        return self.objective.history_points(since)
+    def evaluate(self, points: np.ndarray):
+        """Yield `points` to the scheduler (_side_by_side) and return their values."""
+        values = yield points
+        self.spent += len(points)
+        self.points.append(points)
+        self.values.append(values)
+        return values
+
+    def history(self, known: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The points evaluated through it, after `known` ones, and their indices (+inf where they diverged)."""
+        points = ([] if known is None else [known[0]]) + self.points
+        values = np.concatenate(([] if known is None else [known[1]]) + self.values) if points else np.empty(0)
+        return (np.concatenate(points) if points else np.empty((0, 0)),
+                np.where(values < DIVERGED_PENALTY, values, np.inf))
+
+
+def _side_by_side(objective: _Objective, runs: list) -> list:
+    """Drive `runs` together and return what each returned.
+
+    A run is a generator that yields the points it wants evaluated (through its _Allowance) and is sent their
+    values. Each round is one batch call of every running run's points, so that runs of a few points each (the
+    Nelder-Mead simplices, the local CMA-ES polishes) fill the engine's SIMD lanes and threads beside a DE
+    population instead of each paying for a batch call of its own. A run's episodes are those of its batch of one
+    (each member of a batch is simulated alone), so each run finds what it would alone. Points beyond the budget
+    left end the runs that asked for them, the last first (_BudgetEnded).
+    """
+    results: list = [None] * len(runs)
+    asked: list[np.ndarray | None] = [None] * len(runs)
+
+    def advance(number: int, values: np.ndarray | None = None, ended: bool = False) -> None:
+        try:
+            asked[number] = runs[number].throw(_BudgetEnded()) if ended else runs[number].send(values)
+        except StopIteration as finished:
+            asked[number], results[number] = None, finished.value
+
+    try:
+        for number in range(len(runs)):
+            advance(number)
+        while any(points is not None for points in asked):
+            room, batch = objective.remaining, []
+            for number, points in enumerate(asked):
+                if points is None:
+                    continue
+                if len(points) <= room:
+                    batch.append(number)
+                    room -= len(points)
+                else:
+                    advance(number, ended=True)
+            if not batch:
+                continue
+            values = objective(np.concatenate([asked[number] for number in batch]))
+            ends = np.cumsum([len(asked[number]) for number in batch])
+            for number, start, end in zip(batch, np.concatenate([[0], ends[:-1]]), ends):
+                advance(number, values[start:end])
+    finally:
+        for run in runs:
+            run.close()
+    return results
+
+
+def _run_alone(objective: _Objective, run):
+    """What one run returns, driven alone."""
+    return _side_by_side(objective, [run])[0]
 
 
 def _finite(value: float) -> float:
@@ -556,54 +630,114 @@ def _distinct_best(points: np.ndarray, values: np.ndarray, count: int) -> list[i
     return chosen
 
 
-def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
-               x0: np.ndarray | None = None, since: int | None = None,
-               stall: float | None = None) -> tuple[Restart, int] | None:
+def _members(popsize: int, dimension: int) -> int:
+    """A DE run's population: scipy's own size."""
+    return max(5, popsize * dimension)
+
+
+def _generations(remaining: int, members: int) -> int:
+    """The most generations of a DE run of `members` on DE_SHARE of `remaining` points after its first population."""
+    return min(DE_GENERATIONS, int(DE_SHARE * remaining) // members - 1)
+
+
+def _evolution_room(objective: _Objective, popsize: int, dimension: int) -> bool:
+    """Whether a DE run has room for two generations in the budget left."""
+    return _generations(objective.remaining, _members(popsize, dimension)) >= 1
+
+
+def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
+               x0: np.ndarray | None = None, known: tuple[np.ndarray, np.ndarray] | None = None,
+               stall: float | None = None):
     """One DE run over `box` from `rng`'s draws (with `x0` among its first members, if given) on at most DE_SHARE of
     the budget left, polished (see _polish, with `stall`) by local CMA-ES runs from the FINALISTS best distinct points
-    evaluated since batch `since` (default: its own); None if the budget has no room for two of its generations.
+    among its own and the `known` ones (points, values). A run (see _side_by_side) that returns (its Restart, its
+    generations), or None if the budget has no room for two of its generations.
 
     DE (scipy's: best1bin, Latin hypercube initialisation) evaluates its whole population (popsize × 2n members)
-    as one batch call per generation. The indices sum |e| and |P - P^nom| over the samples, so they have a kink
+    as one batch per generation. The indices sum |e| and |P - P^nom| over the samples, so they have a kink
     wherever a sample's error or torque deviation changes sign: their landscape is rough, with local minima close
     together, and a population that samples the whole box finds deep ones that a local search from the ω rules
     misses.
     """
     low, high = box
-    members = max(5, popsize * len(low))  # scipy's own population size
-    generations = min(DE_GENERATIONS, int(DE_SHARE * objective.remaining) // members - 1)
+    members = _members(popsize, len(low))
+    generations = _generations(allowance.remaining, members)
     if generations < 1:
         return None
-    spent, first_record = objective.evaluations, len(objective.records)
-    evolution = scipy.optimize.differential_evolution(
-        lambda population: objective(population.T), list(zip(low, high)), vectorized=True, updating='deferred',
-        popsize=popsize, maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
-    best = min(_finite(evolution.fun),
-               _polish(objective, first_record if since is None else since, rng, stall=stall)[0])
-    stopped_by = ('tol',) if evolution.success else ('generations',)
-    return Restart(name, members, objective.evaluations - spent, best, stopped_by), int(evolution.nit)
+    # scipy's DE calls its objective and has no ask/tell interface: it runs in a thread of its own, handing each
+    # population over and waiting for its values, so that its batches can be shared with other runs.
+    populations, answers = queue.SimpleQueue(), queue.SimpleQueue()
+
+    def objective(population: np.ndarray) -> np.ndarray:
+        populations.put(population.T)
+        values = answers.get()
+        if values is None:
+            raise _BudgetEnded
+        return values
+
+    def solve() -> None:
+        try:
+            outcome = scipy.optimize.differential_evolution(
+                objective, list(zip(low, high)), vectorized=True, updating='deferred', popsize=popsize,
+                maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
+        except BaseException as error:  # handed to the run, which raises it where the search can report it
+            outcome = error
+        populations.put(outcome)
+
+    solver = threading.Thread(target=solve, name=name, daemon=True)
+    solver.start()
+    best, asked = np.inf, 0
+    try:
+        while isinstance(request := populations.get(), np.ndarray):
+            try:
+                values = yield from allowance.evaluate(request)
+            except _BudgetEnded:
+                answers.put(None)
+                request = populations.get()
+                break
+            asked += 1
+            best = min(best, _finite(float(values.min())))
+            answers.put(values)
+    finally:
+        if solver.is_alive():
+            answers.put(None)
+            solver.join()
+    if isinstance(request, BaseException) and not isinstance(request, _BudgetEnded):
+        raise request
+    if isinstance(request, scipy.optimize.OptimizeResult):
+        stopped_by, ran = ('tol',) if request.success else ('generations',), int(request.nit)
+    else:
+        stopped_by, ran = ('budget',), max(0, asked - 1)
+    polish = _Allowance(allowance.objective)
+    polished, _ = yield from _polish(polish, *allowance.history(known), rng, stall=stall)
+    return Restart(name, members, allowance.episodes + polish.episodes, min(best, polished), stopped_by), ran
 
 
-def _polish(objective: _Objective, since: int, rng, sigma: float = LOCAL_SIGMA, stall: float | None = None,
-            finalists: int = FINALISTS) -> tuple[float, tuple[str, ...]]:
-    """Local CMA-ES runs (σ0 = `sigma`, population LOCAL_POPSIZE) from the `finalists` best distinct points evaluated
-    since batch `since`, their populations side by side in one batch call, until cma stops each or the budget ends
-    them (the last first), or, given `stall`, once their best improved by less than that fraction over the last
-    STALL_CALLS calls. Returns their best index and why they stopped: ('converged',), ('budget',) or ('stalled',)."""
+def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, sigma: float = LOCAL_SIGMA,
+            stall: float | None = None, finalists: int = FINALISTS):
+    """Local CMA-ES runs (σ0 = `sigma`, population LOCAL_POPSIZE) from the `finalists` best distinct `points` (by
+    their `values`), their populations side by side in one batch, until cma stops each or the budget ends them
+    (the last first), or, given `stall`, once their best improved by less than that fraction over the last
+    STALL_CALLS batches. A run (see _side_by_side) that returns its best index and why it stopped: ('converged',),
+    ('budget',) or ('stalled',)."""
     import cma  # see _cma
 
-    points, energies = objective.history_points(since)
-    centres = points[_distinct_best(points, energies, finalists)]
-    runs = [cma.CMAEvolutionStrategy(centre, sigma, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL))
-            for centre in centres[:max(1, objective.remaining // LOCAL_POPSIZE)]]
+    centres = points[_distinct_best(points, values, finalists)]
+    # Unbounded: a local run stays far inside GAIN_RANGE, and cma's bound transformation took a third of its time;
+    # a point outside would score as a divergence.
+    runs = [cma.CMAEvolutionStrategy(centre, sigma, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL, bounded=False))
+            for centre in centres[:max(1, allowance.remaining // LOCAL_POPSIZE)]]
     best, bests = np.inf, []
     while runs:
-        while runs and LOCAL_POPSIZE * len(runs) > objective.remaining:
+        while runs and LOCAL_POPSIZE * len(runs) > allowance.remaining:
             runs.pop()
         if not runs:
             break
         populations = [run.ask() for run in runs]
-        values = objective(np.concatenate([np.array(population) for population in populations]))
+        try:
+            values = yield from allowance.evaluate(np.concatenate([np.array(population) for population in populations]))
+        except _BudgetEnded:
+            return best, ('budget',)
         best = min(best, _finite(float(values.min())))
         bests.append(best)
         if (stall is not None and len(bests) > STALL_CALLS and np.isfinite(best)
@@ -612,182 +746,227 @@ def _polish(objective: _Objective, since: int, rng, sigma: float = LOCAL_SIGMA, 
         for run, population, run_values in zip(runs, populations, np.split(values, len(runs))):
             run.tell(population, run_values.tolist())
         runs = [run for run in runs if not run.stop()]
-    return best, ('budget',) if objective.remaining < LOCAL_POPSIZE else ('converged',)
+    return best, ('budget',) if allowance.remaining < LOCAL_POPSIZE else ('converged',)
 
 
-def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str) -> Restart | None:
-    """One CMA-ES run from `centre` with σ0 = WIDE_SIGMA and population `popsize`, until cma stops it or the budget
-    has no room for its next population; None if it has no room for two."""
+def _wide_cma(allowance: _Allowance, centre: np.ndarray, popsize: int, rng, name: str):
+    """One CMA-ES run from `centre` with σ0 = WIDE_SIGMA and population `popsize`, until cma stops it or its share
+    has no room for its next population. A run (see _side_by_side) that returns its Restart, or None if the budget has
+    no room for two populations."""
     import cma  # see _cma
 
-    if 2 * popsize > objective.remaining:
+    if 2 * popsize > allowance.remaining:
         return None
-    spent, share = objective.evaluations, _Share(objective, WIDE_EVALUATIONS * len(centre) * popsize)
     strategy = cma.CMAEvolutionStrategy(centre, WIDE_SIGMA, cma_options(rng, popsize, CMA_XTOL))
-    best = np.inf
-    while not strategy.stop() and popsize <= share.remaining:
+    best, stopped_by = np.inf, ()
+    while not strategy.stop() and popsize <= allowance.remaining:
         population = strategy.ask()
-        values = objective(np.array(population))
+        try:
+            values = yield from allowance.evaluate(np.array(population))
+        except _BudgetEnded:
+            stopped_by = ('budget',)
+            break
         strategy.tell(population, values.tolist())
         best = min(best, _finite(float(values.min())))
-    stopped_by = tuple(strategy.stop()) or ('budget',)
-    return Restart(name, popsize, objective.evaluations - spent, best, stopped_by)
+    stopped_by = stopped_by or tuple(strategy.stop()) or ('budget',)
+    return Restart(name, popsize, allowance.episodes, best, stopped_by)
+
+
+def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rng, stall: float | None):
+    """Nelder-Mead from the best `starts` (their `values` known) that START_SHARE of the budget left has room for,
+    each an independent run (the others keep their start's index), then the CMA-ES polish of their best distinct ends
+    on at most POLISH_SHARE of the budget then left, with `rng`'s draws. A run (see _side_by_side) that returns their
+    Restarts."""
+    phase = _Allowance(objective, int(START_SHARE * objective.remaining))
+    taken = np.sort(np.argsort(values, kind='stable')[:phase.remaining // (starts.shape[1] + 1)])
+    bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
+    if len(taken):
+        found, converged[taken] = yield from _nelder_mead(phase, starts[taken], START_STEP)
+        bests[taken] = np.minimum(values[taken], found)
+        episodes[taken] = phase.episodes // len(taken)
+    runs = [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
+                    _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
+            for number in range(len(starts))]
+    if len(taken):
+        polish = _Allowance(objective, int(POLISH_SHARE * objective.remaining))
+        best, stopped_by = yield from _polish(polish, *phase.history(), rng, POLISH_SIGMA, stall)
+        runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, polish.episodes, best,
+                            stopped_by))
+    return runs
 
 
 def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndarray, seed: int,
             popsize: int) -> tuple[tuple[Restart, ...], int, Certificate]:
-    """A differential evolution from the best start, Nelder-Mead from every start, then wide CMA-ES runs and
-    further differential evolutions by turns, until the certificate holds or the budget has no room for the next
-    run.
+    """A differential evolution from the best start and Nelder-Mead from every start side by side, each then
+    polished, then wide CMA-ES runs and further differential evolutions by turns, until the certificate holds or
+    the budget has no room for the next run.
 
     The first DE run (over the box of the law's own starts, the best of them among its members, its draws seeded
-    by `seed`, on DE_SHARE of the budget) is the strongest single run measured on the paper's cases, so a small
-    budget goes to it first; the other law's starts join from the Nelder-Mead on. Each start's
-    Nelder-Mead is one independent run; so is the polish of their ends (drawing on after the first DE run), each
-    DE run with its polish and each wide CMA-ES run, the later ones each from their own draws (seeded by `seed`
-    and their number). The CMA-ES runs start from the best start with WIDE_SIGMA and double their population run
-    after run (IPOP-CMA-ES). On searches of STALL_GAINS gains or more every polish stops once it creeps, and the
-    search ends with a final polish of its best point (drawing on after the polish of the Nelder-Mead runs), its
-    result in the certificate's final_polish. Returns the runs, DE's generations in all, and the certificate.
+    by `seed`, on DE_SHARE of the budget) is the strongest single run measured on the paper's cases; the other law's
+    starts join the Nelder-Mead. Each start's Nelder-Mead is one independent run; so is the polish of their ends
+    (with draws of its own), each DE run with its polish and each wide CMA-ES run, the later ones each from their own
+    draws (seeded by `seed` and their number). The CMA-ES runs start from the best start with WIDE_SIGMA and double
+    their population run after run (IPOP-CMA-ES). On searches of STALL_GAINS gains or more every polish stops once it
+    creeps, and the search ends with a final polish of its best point (drawing on after the first DE run's polish),
+    its result in the certificate's final_polish. Returns the runs, DE's generations in all, and the certificate.
     """
     budget = objective.budget * len(objective.scenarios)
     starts = np.vstack([own_starts, other_starts])
     values = objective(starts)
     centre = starts[int(np.argmin(values))]
-    runs, generations = [], 0  # only DE runs until Nelder-Mead's are added below
-    # The first DE run's draws, then the polish of the Nelder-Mead runs', then the final polish's.
-    first_draws = np.random.default_rng(seed)
+    first_draws = np.random.default_rng(seed)  # the first DE run's, then its polish's, then the final polish's
     stall = POLISH_STALL if starts.shape[1] >= STALL_GAINS else None
-    evolution = _evolution(objective, search_box(own_starts), popsize, first_draws,
-                           'differential evolution 1, from the best start',
-                           x0=own_starts[int(np.argmin(values[:len(own_starts)]))], since=0, stall=stall)
-    if evolution is not None:
-        runs.append(evolution[0])
-        generations += evolution[1]
-    phase = _Share(objective, int(START_SHARE * objective.remaining))
-    # The best starts whose simplices the phase has room for; the others keep their start's index.
-    taken = np.sort(np.argsort(values, kind='stable')[:phase.remaining // (starts.shape[1] + 1)])
-    bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
-    phase_record = len(objective.records)
-    if len(taken):
-        spent = objective.evaluations
-        found, converged[taken] = _nelder_mead(phase, starts[taken], START_STEP)
-        bests[taken] = np.minimum(values[taken], found)
-        episodes[taken] = (objective.evaluations - spent) // len(taken)
-    runs += [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
-                     _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
-             for number in range(len(starts))]
-    if len(taken):
-        spent = objective.evaluations
-        best, stopped_by = _polish(_Share(objective, int(POLISH_SHARE * objective.remaining)), phase_record,
-                                   first_draws, POLISH_SIGMA, stall)
-        runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, objective.evaluations - spent,
-                            best, stopped_by))
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
-    evolutions, wide = (0 if evolution is None else 1), 0  # the DE runs and wide CMA-ES runs done
+    best_own = own_starts[int(np.argmin(values[:len(own_starts)]))]
+    first = [_evolution(_Allowance(objective), search_box(own_starts), popsize, first_draws,
+                        'differential evolution 1, from the best start', x0=best_own, known=(starts, values),
+                        stall=stall),
+             _simplices(objective, starts, values, np.random.default_rng([seed, 0, 1]), stall)]
+    # The first wide CMA-ES run joins them when DE has room (it would come next, and most searches that converge do
+    # so after it); its draws are those it would have after them.
+    if _evolution_room(objective, popsize, starts.shape[1]):
+        first.append(_wide_cma(_Allowance(objective, WIDE_EVALUATIONS * len(centre) * cma_popsize), centre,
+                               cma_popsize, np.random.default_rng([seed, 1]), 'wide CMA-ES 1'))
+    evolution, simplices, *widened = _side_by_side(objective, first)
+    widened = [run for run in widened if run is not None]
+    runs = ([] if evolution is None else [evolution[0]]) + simplices + widened
+    generations = 0 if evolution is None else evolution[1]
+    evolutions, wide = (0 if evolution is None else 1), len(widened)  # the DE runs and wide CMA-ES runs done
     while True:
         certificate = Certificate(tuple(runs), evolutions + wide, budget, objective.evaluations)
         if certificate.converged:
             break
         draws = np.random.default_rng([seed, evolutions + wide])
         if wide >= evolutions:
-            evolution = _evolution(objective, search_box(starts, WIDE_GAIN_SPREAD), popsize, draws,
-                                   f'differential evolution {evolutions + 1}', stall=stall)
+            evolution = _run_alone(objective, _evolution(
+                _Allowance(objective), search_box(starts, WIDE_GAIN_SPREAD), popsize, draws,
+                f'differential evolution {evolutions + 1}', stall=stall))
             if evolution is None:
                 break
             run, ran = evolution
             generations += ran
             evolutions += 1
         else:
-            run = _wide_cma(objective, centre, cma_popsize * 2 ** wide, draws, f'wide CMA-ES {wide + 1}')
+            popsize_now = cma_popsize * 2 ** wide
+            run = _run_alone(objective, _wide_cma(_Allowance(objective, WIDE_EVALUATIONS * len(centre) * popsize_now),
+                                                  centre, popsize_now, draws, f'wide CMA-ES {wide + 1}'))
             if run is None:
                 break
             wide += 1
         runs.append(run)
     if stall is not None:
-        spent = objective.evaluations
-        best, stopped_by = _polish(objective, 0, first_draws, finalists=1)
+        polish = _Allowance(objective)
+        best, stopped_by = _run_alone(objective, _polish(polish, *objective.history_points(0), first_draws,
+                                                         finalists=1))
         certificate = replace(certificate, episodes=objective.evaluations, final_polish=Restart(
-            'final CMA-ES polish of the best point', LOCAL_POPSIZE, objective.evaluations - spent, best, stopped_by))
+            'final CMA-ES polish of the best point', LOCAL_POPSIZE, polish.episodes, best, stopped_by))
     return tuple(runs), generations, certificate
 
 
-def _cma(objective: _Objective, starts: np.ndarray, step: float, seed: int, popsize: int | None) -> None:
-    """CMA-ES (the `cma` package) from the best start, one batch call per population."""
+def _cma(allowance: _Allowance, starts: np.ndarray, step: float, seed: int, popsize: int | None):
+    """CMA-ES (the `cma` package) from the best start, one batch per population: a run (see _side_by_side)."""
     # Imported here, not at the top: cma (with scipy.stats) takes 1.5 to 2 s that most commands need not wait.
     import cma
 
-    values = objective(starts)
+    values = yield from allowance.evaluate(starts)
     rng = np.random.default_rng(seed)
     strategy = cma.CMAEvolutionStrategy(starts[int(np.argmin(values))], step, cma_options(rng, popsize))
-    while not strategy.stop() and strategy.popsize <= objective.remaining:
+    while not strategy.stop() and strategy.popsize <= allowance.remaining:
         population = strategy.ask()
-        strategy.tell(population, objective(np.array(population)).tolist())
+        try:
+            strategy.tell(population, (yield from allowance.evaluate(np.array(population))).tolist())
+        except _BudgetEnded:
+            return
 
 
-def _nelder_mead(objective: _Objective, starts: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Nelder-Mead (standard coefficients 1, 2, 1/2, 1/2) from every start at once.
+# The stages of a Nelder-Mead iteration, each simplex at its own: its reflected point, then (unless the reflection
+# was accepted) the expansion or contraction, then (if that failed) the shrink of every vertex but the best.
+_REFLECT, _TRIAL, _SHRINK = 0, 1, 2
+_EXPAND, _OUTSIDE, _INSIDE = 0, 1, 2
 
-    Returns each start's best value and whether it ended converged (False: the budget or NM_EVALUATIONS ended it
+
+def _nelder_mead(allowance: _Allowance, starts: np.ndarray, step: float):
+    """Nelder-Mead (standard coefficients 1, 2, 1/2, 1/2) from every start at once: a run (see _side_by_side) that
+    returns each start's best value and whether it ended converged (False: the budget or NM_EVALUATIONS ended it
     first).
 
-    scipy's Nelder-Mead asks for one point at a time, so it cannot batch the starts; here
-    each phase of an iteration (the reflections; the expansions and contractions; the shrinks)
-    is one batch call over all starts that need it. Evaluating all four candidates at once
-    would make an iteration one call but would about double the episodes.
+    scipy's Nelder-Mead asks for one point at a time, so it cannot batch the starts; here each simplex goes through
+    the stages of its iterations (the reflection; the expansion or contraction; the shrink) at its own pace, and
+    every simplex's next stage is in one batch. Evaluating all four candidates at once would make an iteration one
+    stage but would about double the episodes.
     """
     count, dimension = starts.shape
-    edges = step * np.eye(dimension)
     converged = np.zeros(count, dtype=bool)
-    if count * (dimension + 1) > objective.remaining:
+    if count * (dimension + 1) > allowance.remaining:
         return np.full(count, np.inf), converged
-    simplex = starts[:, None, :] + np.concatenate([np.zeros((1, dimension)), edges])[None]
-    values = objective(simplex.reshape(-1, dimension)).reshape(count, dimension + 1)
+    simplex = starts[:, None, :] + np.concatenate([np.zeros((1, dimension)), step * np.eye(dimension)])[None]
+    try:
+        values = (yield from allowance.evaluate(simplex.reshape(-1, dimension))).reshape(count, dimension + 1)
+    except _BudgetEnded:
+        return np.full(count, np.inf), converged
     evaluated = np.full(count, dimension + 1)
     active = np.ones(count, dtype=bool)
+    stage, move = np.full(count, _REFLECT), np.zeros(count, dtype=int)
+    centroid, reflected, trial = np.empty((3, count, dimension))
+    reflected_value = np.empty(count)
+    shrunk = np.empty((count, dimension, dimension))
     while True:
-        order = np.argsort(values, axis=1, kind='stable')
-        simplex = np.take_along_axis(simplex, order[:, :, None], axis=1)
-        values = np.take_along_axis(values, order, axis=1)
-        spread = np.max(np.abs(simplex[:, 1:] - simplex[:, :1]), axis=(1, 2))
-        agreement = np.max(np.abs(values[:, 1:] - values[:, :1]), axis=1) <= NM_FTOL * np.abs(values[:, 0])
-        settled = active & (spread <= NM_XTOL) & agreement
-        converged |= settled
-        active &= ~(settled | (evaluated >= NM_EVALUATIONS * dimension))
-        moving = np.flatnonzero(active)
-        if len(moving) == 0 or len(moving) > objective.remaining:
+        # A simplex starting an iteration: ordered, and ended once it has converged or spent its evaluations.
+        starting = np.flatnonzero(active & (stage == _REFLECT))
+        order = np.argsort(values[starting], axis=1, kind='stable')
+        simplex[starting] = np.take_along_axis(simplex[starting], order[:, :, None], axis=1)
+        values[starting] = np.take_along_axis(values[starting], order, axis=1)
+        spread = np.max(np.abs(simplex[starting, 1:] - simplex[starting, :1]), axis=(1, 2))
+        agreement = (np.max(np.abs(values[starting, 1:] - values[starting, :1]), axis=1)
+                     <= NM_FTOL * np.abs(values[starting, 0]))
+        settled = (spread <= NM_XTOL) & agreement
+        converged[starting[settled]] = True
+        active[starting[settled | (evaluated[starting] >= NM_EVALUATIONS * dimension)]] = False
+        reflecting = np.flatnonzero(active & (stage == _REFLECT))
+        trying = np.flatnonzero(active & (stage == _TRIAL))
+        shrinking = np.flatnonzero(active & (stage == _SHRINK))
+        centroid[reflecting] = simplex[reflecting, :-1].mean(axis=1)
+        reflected[reflecting] = 2.0 * centroid[reflecting] - simplex[reflecting, -1]
+        points = np.concatenate([reflected[reflecting], trial[trying], shrunk[shrinking].reshape(-1, dimension)])
+        if len(points) == 0 or len(points) > allowance.remaining:
             break
-        best, worst = values[moving, 0], values[moving, -1]
-        centroid = simplex[moving, :-1].mean(axis=1)
-        reflected = 2.0 * centroid - simplex[moving, -1]
-        reflected_value = objective(reflected)
-        expand = reflected_value < best
-        accept = ~expand & (reflected_value < values[moving, -2])
-        outside = ~expand & ~accept & (reflected_value < worst)
-        inside = ~expand & ~accept & ~outside
-        trial = np.where(expand[:, None], centroid + 2.0 * (reflected - centroid),
-                         np.where(outside[:, None], centroid + 0.5 * (reflected - centroid),
-                                  centroid + 0.5 * (simplex[moving, -1] - centroid)))
-        tried = ~accept
-        if tried.sum() > objective.remaining:
+        try:
+            asked = yield from allowance.evaluate(points)
+        except _BudgetEnded:
             break
-        trial_value = np.full(len(moving), np.inf)
-        if tried.any():
-            trial_value[tried] = objective(trial[tried])
-        evaluated[moving] += 1 + tried
-        new_vertex, new_value = reflected.copy(), reflected_value.copy()
-        take_trial = ((expand & (trial_value < reflected_value)) | (outside & (trial_value <= reflected_value))
-                      | (inside & (trial_value < worst)))
-        new_vertex[take_trial], new_value[take_trial] = trial[take_trial], trial_value[take_trial]
-        shrink = (outside & (trial_value > reflected_value)) | (inside & (trial_value >= worst))
-        keep = ~shrink
-        simplex[moving[keep], -1], values[moving[keep], -1] = new_vertex[keep], new_value[keep]
-        shrinking = moving[shrink]
-        if len(shrinking):
-            if len(shrinking) * dimension > objective.remaining:
-                break
-            shrunk = simplex[shrinking, :1] + 0.5 * (simplex[shrinking, 1:] - simplex[shrinking, :1])
-            simplex[shrinking, 1:] = shrunk
-            values[shrinking, 1:] = objective(shrunk.reshape(-1, dimension)).reshape(len(shrinking), dimension)
-            evaluated[shrinking] += dimension
+        reflected_at, tried_at = asked[:len(reflecting)], asked[len(reflecting):len(reflecting) + len(trying)]
+        shrunk_at = asked[len(reflecting) + len(trying):].reshape(len(shrinking), dimension)
+        # The reflections: accepted between the best and the second worst, else an expansion or a contraction.
+        rows = reflecting
+        expand = reflected_at < values[rows, 0]
+        accept = ~expand & (reflected_at < values[rows, -2])
+        outside = ~expand & ~accept & (reflected_at < values[rows, -1])
+        evaluated[rows] += 1
+        simplex[rows[accept], -1], values[rows[accept], -1] = reflected[rows[accept]], reflected_at[accept]
+        reflected_value[rows] = reflected_at
+        move[rows] = np.where(expand, _EXPAND, np.where(outside, _OUTSIDE, _INSIDE))
+        trial[rows] = np.where(expand[:, None], centroid[rows] + 2.0 * (reflected[rows] - centroid[rows]),
+                               np.where(outside[:, None], centroid[rows] + 0.5 * (reflected[rows] - centroid[rows]),
+                                        centroid[rows] + 0.5 * (simplex[rows, -1] - centroid[rows])))
+        stage[rows[~accept]] = _TRIAL
+        # The expansions and contractions: the better of trial and reflection replaces the worst vertex, or a
+        # contraction that failed shrinks the simplex towards its best vertex.
+        rows = trying
+        evaluated[rows] += 1
+        kind, worst = move[rows], values[rows, -1]
+        take_trial = (((kind == _EXPAND) & (tried_at < reflected_value[rows]))
+                      | ((kind == _OUTSIDE) & (tried_at <= reflected_value[rows]))
+                      | ((kind == _INSIDE) & (tried_at < worst)))
+        shrink = ((kind == _OUTSIDE) & (tried_at > reflected_value[rows])) | ((kind == _INSIDE) & (tried_at >= worst))
+        keep = rows[~shrink]
+        simplex[keep, -1] = np.where(take_trial[~shrink, None], trial[keep], reflected[keep])
+        values[keep, -1] = np.where(take_trial[~shrink], tried_at[~shrink], reflected_value[keep])
+        stage[keep] = _REFLECT
+        contracted = rows[shrink]
+        shrunk[contracted] = simplex[contracted, :1] + 0.5 * (simplex[contracted, 1:] - simplex[contracted, :1])
+        stage[contracted] = _SHRINK
+        # The shrinks.
+        simplex[shrinking, 1:], values[shrinking, 1:] = shrunk[shrinking], shrunk_at
+        evaluated[shrinking] += dimension
+        stage[shrinking] = _REFLECT
     return values.min(axis=1), converged
