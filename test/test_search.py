@@ -262,3 +262,13 @@ def test_a_search_stopped_midway_leaves_no_thread_behind():
     with pytest.raises(Stopped):
         search._side_by_side(bowl, [_bowl_run(bowl, kind) for kind in ('evolution', 'nelder-mead')])
     assert not any(thread.name == 'DE' for thread in threading.enumerate())
+
+
+def test_each_simplex_goes_its_own_way_beside_the_others():
+    starts = np.array([[0.3, -0.2, 0.5, 0.1], [-1.0, 1.0, 0.4, 0.0], [2.0, 2.0, -2.0, 1.0]])
+    together = search._run_alone(bowl := _Bowl(100_000), search._nelder_mead(search._Allowance(bowl), starts, 0.5))
+    for number, start in enumerate(starts):
+        bowl = _Bowl(100_000)
+        alone = search._run_alone(bowl, search._nelder_mead(search._Allowance(bowl), start[None], 0.5))
+        assert alone[0][0] == together[0][number] and alone[1][0] == together[1][number]
+    assert together[1].all()  # the bowl's simplices converge
