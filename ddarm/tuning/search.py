@@ -577,8 +577,8 @@ def _side_by_side(objective: _Objective, runs: list) -> list:
     values. Each round is one batch call of every running run's points, so that runs of a few points each (the
     Nelder-Mead simplices, the local CMA-ES polishes) fill the engine's SIMD lanes and threads beside a DE
     population instead of each paying for a batch call of its own. A run's episodes are those of its batch of one
-    (each member of a batch is simulated alone), so each run finds what it would alone. Points beyond the budget
-    left end the runs that asked for them, the last first (_BudgetEnded).
+    (each member of a batch is simulated alone), so each run finds what it would alone. The runs are served in
+    their order: one whose points do not fit in the budget the runs before it left is ended (_BudgetEnded).
     """
     results: list = [None] * len(runs)
     asked: list[np.ndarray | None] = [None] * len(runs)
