@@ -201,7 +201,7 @@ def _bowl_run(bowl, kind):
                                    0.5)
     if kind == 'polish':
         return search._polish(search._Allowance(bowl), *bowl.history_points(), np.random.default_rng(5), 0.1)
-    return search._evolution(search._Allowance(bowl), (np.full(4, -2.0), np.full(4, 2.0)), 5,
+    return search._evolution(bowl, (np.full(4, -2.0), np.full(4, 2.0)), 5,
                              np.random.default_rng(7), 'DE')
 
 

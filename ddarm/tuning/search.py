@@ -650,7 +650,7 @@ def _evolution_room(objective: _Objective, popsize: int, dimension: int) -> bool
     return _generations(objective.remaining, _members(popsize, dimension)) >= 1
 
 
-def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
+def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
                x0: np.ndarray | None = None, known: tuple[np.ndarray, np.ndarray] | None = None,
                stall: float | None = None):
     """One DE run over `box` from `rng`'s draws (with `x0` among its first members, if given) on at most DE_SHARE of
@@ -666,6 +666,7 @@ def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsiz
     """
     low, high = box
     members = _members(popsize, len(low))
+    allowance = _Allowance(objective)
     generations = _generations(allowance.remaining, members)
     if generations < 1:
         return None
@@ -673,7 +674,7 @@ def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsiz
     # population over and waiting for its values, so that its batches can be shared with other runs.
     populations, answers = queue.SimpleQueue(), queue.SimpleQueue()
 
-    def objective(population: np.ndarray) -> np.ndarray:
+    def handed_over(population: np.ndarray) -> np.ndarray:
         populations.put(population.T)
         values = answers.get()
         if values is None:
@@ -683,7 +684,7 @@ def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsiz
     def solve() -> None:
         try:
             outcome = scipy.optimize.differential_evolution(
-                objective, list(zip(low, high)), vectorized=True, updating='deferred', popsize=popsize,
+                handed_over, list(zip(low, high)), vectorized=True, updating='deferred', popsize=popsize,
                 maxiter=generations, tol=DE_TOL, polish=False, x0=x0, rng=rng)
         except BaseException as error:  # handed to the run, which raises it where the search can report it
             outcome = error
@@ -713,7 +714,7 @@ def _evolution(allowance: _Allowance, box: tuple[np.ndarray, np.ndarray], popsiz
         stopped_by, ran = ('tol',) if request.success else ('generations',), int(request.nit)
     else:
         stopped_by, ran = ('budget',), max(0, asked - 1)
-    polish = _Allowance(allowance.objective)
+    polish = _Allowance(objective)
     polished, _ = yield from _polish(polish, *allowance.history(known), rng, stall=stall)
     return Restart(name, members, allowance.episodes + polish.episodes, min(best, polished), stopped_by), ran
 
@@ -754,12 +755,13 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
     return best, ('budget',) if allowance.remaining < LOCAL_POPSIZE else ('converged',)
 
 
-def _wide_cma(allowance: _Allowance, centre: np.ndarray, popsize: int, rng, name: str):
+def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str):
     """One CMA-ES run from `centre` with σ0 = WIDE_SIGMA and population `popsize`, until cma stops it or its share
-    has no room for its next population. A run (see _side_by_side) that returns its Restart, or None if the budget has
-    no room for two populations."""
+    (WIDE_EVALUATIONS) has no room for its next population. A run (see _side_by_side) that returns its Restart, or
+    None if the budget has no room for two populations."""
     import cma  # see _cma
 
+    allowance = _Allowance(objective, WIDE_EVALUATIONS * len(centre) * popsize)
     if 2 * popsize > allowance.remaining:
         return None
     strategy = cma.CMAEvolutionStrategy(centre, WIDE_SIGMA, cma_options(rng, popsize, CMA_XTOL))
@@ -823,15 +825,14 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
     stall = POLISH_STALL if starts.shape[1] >= STALL_GAINS else None
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
     best_own = own_starts[int(np.argmin(values[:len(own_starts)]))]
-    first = [_evolution(_Allowance(objective), search_box(own_starts), popsize, first_draws,
+    first = [_evolution(objective, search_box(own_starts), popsize, first_draws,
                         'differential evolution 1, from the best start', x0=best_own, known=(starts, values),
                         stall=stall),
              _simplices(objective, starts, values, np.random.default_rng([seed, 0, 1]), stall)]
     # The first wide CMA-ES run joins them when DE has room (it would come next, and most searches that converge do
     # so after it); its draws are those it would have after them.
     if _evolution_room(objective, popsize, starts.shape[1]):
-        first.append(_wide_cma(_Allowance(objective, WIDE_EVALUATIONS * len(centre) * cma_popsize), centre,
-                               cma_popsize, np.random.default_rng([seed, 1]), 'wide CMA-ES 1'))
+        first.append(_wide_cma(objective, centre, cma_popsize, np.random.default_rng([seed, 1]), 'wide CMA-ES 1'))
     evolution, simplices, *widened = _side_by_side(objective, first)
     widened = [run for run in widened if run is not None]
     runs = ([] if evolution is None else [evolution[0]]) + simplices + widened
@@ -844,7 +845,7 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
         draws = np.random.default_rng([seed, evolutions + wide])
         if wide >= evolutions:
             evolution = _run_alone(objective, _evolution(
-                _Allowance(objective), search_box(starts, WIDE_GAIN_SPREAD), popsize, draws,
+                objective, search_box(starts, WIDE_GAIN_SPREAD), popsize, draws,
                 f'differential evolution {evolutions + 1}', stall=stall))
             if evolution is None:
                 break
@@ -852,9 +853,8 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
             generations += ran
             evolutions += 1
         else:
-            popsize_now = cma_popsize * 2 ** wide
-            run = _run_alone(objective, _wide_cma(_Allowance(objective, WIDE_EVALUATIONS * len(centre) * popsize_now),
-                                                  centre, popsize_now, draws, f'wide CMA-ES {wide + 1}'))
+            run = _run_alone(objective, _wide_cma(objective, centre, cma_popsize * 2 ** wide, draws,
+                                                  f'wide CMA-ES {wide + 1}'))
             if run is None:
                 break
             wide += 1
