@@ -95,7 +95,8 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
     robust = None if scenarios is None else Robustness(
         tuple(scenarios), aggregate, scenario_scores(scenarios, result.kp, result.kv, index),
         scenario_scores(scenarios, nominal.kp, nominal.kv, index), nominal, nominal_wall)
-    episode = run_episode(template.with_gains(result.kp, result.kv))
+    best = template.with_gains(result.kp, result.kv)
+    episode = run_episode(best)
     warnings = episode.plan.warnings
     if method == 'global' and result.evolution_generations == 0:
         warnings += (f'the budget ({budget} episodes{f" over {len(scenarios)} scenarios" if scenarios else ""}) left '
@@ -103,7 +104,7 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
                      'basins may have been missed; raise --budget',)
     rate = None
     if measure_batch_rate:
-        rate = batch_rates(template.with_gains(result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
+        rate = batch_rates(best, (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust,
                   rate)
 
