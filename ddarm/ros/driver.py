@@ -469,12 +469,19 @@ class GraphDriver(Node):
     def _stalled(self, mode: str) -> str | None:
         """Why an episode under way stopped moving, naming the node that owes a message; None while it moves."""
         waited = time.monotonic() - self.recording.last_heard
-        plant = self.node_name(self.plant_node)
+
+        def silent_plant(question: str) -> str:
+            return (f'the plant {self.node_name(self.plant_node)} published nothing for {waited:.1f} s '
+                    f'({self.recording.heard()}): {question}')
+
         if (mode == 'realtime' or self.recording.owed_by_plant()) and waited > max(PLANT_STALL_TIMEOUT,
                                                                                      5 * self.period):
-            return (f'the plant {plant} published nothing for {waited:.1f} s ({self.recording.heard()}): did it '
-                    'die, or not hear the command?')
+            return silent_plant('did it die, or not hear the command?')
         if waited > STALL_TIMEOUT:
+            # Before its first state the plant may wait for its subscribers, but it would have reported a start it
+            # could not make by now: the state owed is its own, not a command (a plant killed just after starting).
+            if self.recording.latest_state is None:
+                return silent_plant('did it die before its first state?')
             return f'nothing heard for {waited:.1f} s ({self.recording.heard()}); {self._controller_note()}'
         return None
 
