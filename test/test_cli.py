@@ -1,5 +1,6 @@
 """The `ddarm episode` command: its JSON, its human output and its refusals."""
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -114,7 +115,10 @@ def test_tune_warns_of_starts_and_tuned_gains_beyond_the_boundary(capsys, tmp_pa
                                         {})
         return searched
 
-    monkeypatch.setattr(tune_command, 'check_through_graph', lambda run, spec, storage: {})
+    monkeypatch.setattr(tune_command, 'graph_with_nodes',
+                        lambda template: contextlib.nullcontext(SimpleNamespace(keep_files_in=lambda folder: None,
+                                                                                close=lambda: None)))
+    monkeypatch.setattr(tune_command, 'check_through_graph', lambda session, run, spec, storage: {})
     monkeypatch.setattr(outputs, 'finish_tuning', lambda run, template, best, tuning, scored, **options: {
         'agree': True, 'warnings': list(tuning.warnings)})
     tune = ['tune', '--controller', 'pd_gravity', '--delay', '0', '--index', 'I', '--runs', str(tmp_path), '--json']

@@ -198,6 +198,35 @@ def test_a_killed_node_of_a_session_is_forgotten_within_its_short_lease_and_the_
         assert not episode.diverged[0] and episode.I1[0] > 0
 
 
+def test_a_session_started_before_its_run_folder_keeps_its_nodes_files_there_however_it_ends(tmp_path):
+    """`ddarm tune`'s session: nodes started while the search runs (in a folder of the session's own), told to stop
+    before the report, their logs copied into the run folder once they stopped; also when the session fails."""
+    from ddarm.episodes.spec import EpisodeSpec
+    from ddarm.ros.session import GraphSession
+
+    spec = EpisodeSpec(controller='pd_gravity', kp=(225.0,) * 3, kv=(30.0,) * 3, duration=0.05)
+    with GraphSession() as session:
+        session.prepare(spec)
+        own = session.folder
+        session.keep_files_in(tmp_path / 'run' / 'nodes')
+        episode = session.run(spec)
+        processes = list(session.processes.values())
+        session.stop_nodes()
+        assert not session.processes
+        session.close()
+    assert not episode.diverged[0] and all(process.returncode is not None for process in processes)
+    assert not own.exists(), "the session's own folder is removed"
+    kept = tmp_path / 'run' / 'nodes'
+    assert {'plant.log', 'pd_gravity.log', 'plant.parameters.yaml', 'fastdds_profile.xml'} <= {
+        path.name for path in kept.iterdir()}
+    assert 'episode complete' in (kept / 'plant.log').read_text()
+    with pytest.raises(RuntimeError, match='the search failed'), GraphSession() as session:
+        session.prepare(spec)
+        session.keep_files_in(tmp_path / 'failed' / 'nodes')
+        raise RuntimeError('the search failed')
+    assert (tmp_path / 'failed' / 'nodes' / 'plant.parameters.yaml').is_file()
+
+
 def test_a_users_own_fast_dds_profile_is_kept_for_a_sessions_nodes(tmp_path, monkeypatch):
     from ddarm.ros.session import node_environment
 

@@ -66,7 +66,7 @@ def robust_scenarios(args: argparse.Namespace, template):
 
 def command_tune(args: argparse.Namespace) -> int:
     from ddarm.tuning.outputs import check_outputs, finish_tuning, run_folder
-    from ddarm.tuning.tune import tune
+    from ddarm.tuning.tune import check_tune, tune
 
     check_outputs(args.out, args.runs, args.run)
     template = episode_spec(args)
@@ -79,6 +79,7 @@ def command_tune(args: argparse.Namespace) -> int:
             print(f'ddarm tune: WARNING: {warning}', file=sys.stderr)
     scenarios = robust_scenarios(args, template)
     objective = args.objective or 'worst'
+    check_tune(template, args.index, args.method, args.budget, args.omegas, scenarios, objective)  # before the nodes
     progress = None if args.json else sys.stderr
     if progress:
         budget = (f'budget {args.budget} episodes' if scenarios is None else
@@ -86,23 +87,25 @@ def command_tune(args: argparse.Namespace) -> int:
                   f'scenarios ({objective} {args.index})')
         print(f'searching ({args.method}, {budget}, starts ω = {args.omegas}) …', file=progress, flush=True)
     label = 'search' if scenarios is None else f'robust search ({len(scenarios)} scenarios)'
-    with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
-        tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed, progress=bar.update,
-                      scenarios=scenarios, aggregate=objective, measure_batch_rate=True)
-    best_gains = dataclasses.replace(template, kp=tuple(tuning.search.kp), kv=tuple(tuning.search.kv))
-    tuning = dataclasses.replace(tuning, warnings=tuple(tuning.warnings) + tuple(loop_stability_warnings(
-        best_gains, 'the tuned gains')))
-    # Only now: a refused search leaves nothing behind.
-    with run_folder('tune', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
-        best_spec = template.with_gains(tuning.search.kp, tuning.search.kv)
-        if progress:
-            best = args.index if scenarios is None else f'{objective} {args.index} over the scenarios'
-            print(f'best {best} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
-                  f'checking {"it" if scenarios is None else "its nominal episode"} through the ROS graph …',
-                  file=progress, flush=True)
-        scored = check_through_graph(run, best_spec, args.storage)
-        report = finish_tuning(run, template, best_spec, tuning, scored, index=args.index, method=args.method,
-                               seed=args.seed, out=args.out)
+    with graph_with_nodes(template) as session:
+        with Progress(args.budget, label, quiet=args.json, index_name=args.index) as bar:
+            tuning = tune(template, args.index, args.method, args.budget, args.omegas, args.seed,
+                          progress=bar.update, scenarios=scenarios, aggregate=objective, measure_batch_rate=True)
+        best_gains = dataclasses.replace(template, kp=tuple(tuning.search.kp), kv=tuple(tuning.search.kv))
+        tuning = dataclasses.replace(tuning, warnings=tuple(tuning.warnings) + tuple(loop_stability_warnings(
+            best_gains, 'the tuned gains')))
+        with run_folder('tune', args.controller, args.runs, args.run, shlex.join(['ddarm', *args.argv])) as run:
+            session.keep_files_in(run.path / 'nodes')
+            best_spec = template.with_gains(tuning.search.kp, tuning.search.kv)
+            if progress:
+                best = args.index if scenarios is None else f'{objective} {args.index} over the scenarios'
+                print(f'best {best} = {tuning.search.index:.6g} after {tuning.search.episodes} episodes; '
+                      f'checking {"it" if scenarios is None else "its nominal episode"} through the ROS graph …',
+                      file=progress, flush=True)
+            scored = check_through_graph(session, run, best_spec, args.storage)
+            report = finish_tuning(run, template, best_spec, tuning, scored, index=args.index, method=args.method,
+                                   seed=args.seed, out=args.out)
+            session.close()
     if args.json:
         print_json(report)
     else:
@@ -110,13 +113,25 @@ def command_tune(args: argparse.Namespace) -> int:
     return 0 if report['agree'] else 2
 
 
-def check_through_graph(run, spec, storage: str) -> dict:
-    """`spec` run once through the ROS graph, recorded in the run folder, scored from the bag."""
+def graph_with_nodes(template):
+    """A graph session with `template`'s nodes starting, so that they come up while the search runs; in a folder of
+    its own, kept in the run folder once there is one (a refused search leaves nothing behind)."""
     from ddarm.ros.session import GraphSession
 
-    with GraphSession(run.path / 'nodes') as session:
-        _, scored = session.record_and_score(spec, run.bag_path('best'), command=run.summary['command'],
-                                             storage=storage)
+    session = GraphSession()
+    try:
+        session.prepare(template)
+    except BaseException:
+        session.close()
+        raise
+    return session
+
+
+def check_through_graph(session, run, spec, storage: str) -> dict:
+    """`spec` run once through the session's graph, recorded in the run folder, scored from the bag; then the
+    session's nodes told to stop (closing the session waits for them, and keeps their files in the run folder)."""
+    _, scored = session.record_and_score(spec, run.bag_path('best'), command=run.summary['command'], storage=storage)
+    session.stop_nodes()
     return scored
 
 

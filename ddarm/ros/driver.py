@@ -42,9 +42,10 @@ from ddarm.ros.parameter_schema import PEER_TIMEOUT
 # How often the graph is checked while an episode runs, and how long a node may be missing from
 # it before the episode fails (discovery can lag a little; a foreign publisher fails at once).
 GRAPH_CHECK_PERIOD = 0.5
-# A driver's first look at the graph waits this long with the graph as it must be: a context's DDS participant is
-# made with its first node (and destroyed with its last), and discovers the others one by one, so a fresh one can
-# see the plant and one controller before the second controller on the domain.
+# A driver trusts its look at the graph only once its DDS participant is this old: a context's participant is made
+# with its first node (and destroyed with its last), and discovers the others one by one, so a fresh one can see the
+# plant and one controller before the second controller on the domain. A driver whose nodes came up while its process
+# searched is that old by then, and waits no more.
 DISCOVERY_SETTLE = 1.0
 PEER_LOSS_GRACE = 1.0
 # A node process that ended is gone from the graph once discovery forgets it: at once when its participant's
@@ -202,7 +203,7 @@ class GraphDriver(Node):
             self.reset_clients[law] = self.create_client(Trigger, f'{law}/reset')
             self.status_clients[law] = self.create_client(Trigger, f'{law}/status')
         self._next_graph_check = 0.0
-        self._graph_settled = False  # DISCOVERY_SETTLE waited once
+        self._discovered_by = time.monotonic() + DISCOVERY_SETTLE  # its participant is made with it
         self._peer_missing_since: float | None = None
         self.last_traffic = 0.0  # wall time of the last state or command heard, in an episode or not
         self._unwritten: list[tuple[str, int, bytes]] = []  # (topic, stamp ns, CDR) recorded, not yet in the bag
@@ -278,20 +279,15 @@ class GraphDriver(Node):
     def wait_for_peers(self, executor, law: str, timeout: float = PEER_TIMEOUT, alive=lambda: None) -> None:
         """Until the plant and the `law` controller are on the graph, alone; names what is wrong if they never are."""
         deadline = time.monotonic() + timeout
-        settled_at = None
         while True:
             check_stop()
             foreign, missing = self.graph_problems(law)
             if not foreign and not missing:
-                now = time.monotonic()
-                settled_at = settled_at or now + (0.0 if self._graph_settled else DISCOVERY_SETTLE)
-                if now >= min(settled_at, deadline):  # settling is caution: never a refusal of a ready graph
-                    self._graph_settled = True
+                # Settling is caution: never a refusal of a ready graph.
+                if time.monotonic() >= min(self._discovered_by, deadline):
                     return
-            else:
-                settled_at = None
-                if time.monotonic() > deadline:
-                    raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
+            elif time.monotonic() > deadline:
+                raise GraphEpisodeError('the graph is not ready for an episode: ' + '; '.join(foreign + missing))
             if not self.context.ok():
                 raise ExternalShutdownException('shut down while waiting for the plant and controller')
             alive()

@@ -41,14 +41,15 @@ def follow_parent() -> None:
         raise SystemExit(f'the process that started this node ({parent}) is gone; not starting')
 
 
-def stop_processes(processes, stop: int = signal.SIGINT, timeout: float = 10.0) -> None:
+def stop_processes(processes, stop: int = signal.SIGINT, timeout: float = 10.0, signalled=()) -> None:
     """Stop node processes started by this one: `stop` (SIGINT: a node leaves the graph as after a Ctrl-C) to all
-    at once, then, for each still running after `timeout` s, SIGKILL; each one waited for (no zombie left)."""
+    at once but the `signalled` ones (sent it before), then, for each still running after `timeout` s, SIGKILL; each
+    one waited for (no zombie left)."""
     processes = list(processes)
     for process in processes:
         if process.poll() is None:
             process.send_signal(stop)
-    for process in processes:
+    for process in [*processes, *signalled]:
         try:
             process.wait(timeout=timeout)
         except subprocess.TimeoutExpired:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import secrets
+import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -97,6 +99,9 @@ class GraphSession:
         self.scheduling = scheduling
         self.namespace = session_namespace()
         self.processes: dict[str, subprocess.Popen] = {}
+        self._closed = False
+        self._keep: Path | None = None
+        self._stopping: list[subprocess.Popen] = []  # told to stop (stop_nodes), not yet waited for
         self.arms: dict[str, dict] = {}  # per node process: the read-only parameters it was started with
         self.context = rclpy.Context()
         # A context of our own (rclpy installs no signal handler for it), given no arguments: ddarm's command line
@@ -132,8 +137,7 @@ class GraphSession:
         stopped = [other for other in CONTROLLERS if other != law and other in self.processes]
         arms = arm_parameters(spec)
         stopped += [name for name in ('plant', law) if name in self.processes and self.arms[name] != arms[name]]
-        for name in stopped:
-            self._stop(name)
+        self._stop(*stopped)
         # Before another starts: a stopped node still on the graph would fail the next episode's check of it.
         self.driver.wait_until_gone(stopped)
         if 'plant' not in self.processes:
@@ -176,16 +180,37 @@ class GraphSession:
         """`record_and_score` on this session: run `spec` in lockstep, record it at `bag`, score the bag."""
         return record_and_score(self, spec, bag, storage=storage, command=command)
 
-    def _stop(self, name: str) -> None:
-        self.arms.pop(name, None)
-        stop_processes([self.processes.pop(name)], timeout=5)
+    def _stop(self, *names: str, signalled=()) -> None:
+        for name in names:
+            self.arms.pop(name, None)
+        stop_processes([self.processes.pop(name) for name in names], timeout=5, signalled=signalled)
+
+    def stop_nodes(self) -> None:
+        """Tell every node to stop, without waiting: they leave the graph while this process goes on; close waits."""
+        for name in list(self.processes):
+            self.arms.pop(name, None)
+            process = self.processes.pop(name)
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+            self._stopping.append(process)
+
+    def keep_files_in(self, folder: Path | str) -> None:
+        """Where closing copies the session's folder (the nodes' logs, parameter files and DDS profile, complete once
+        they stopped), whether the session ends well or not: for a session that started before its run's folder."""
+        self._keep = Path(folder)
 
     def close(self) -> None:
-        for name in list(self.processes):
-            self._stop(name)
+        """Stop the nodes (all at once), leave the graph, keep the session's files (keep_files_in). A second close
+        does nothing."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop(*list(self.processes), signalled=self._stopping)
         self.executor.shutdown()
         self.driver.destroy_node()
         rclpy.try_shutdown(context=self.context)
+        if self._keep is not None:
+            shutil.copytree(self.folder, self._keep, dirs_exist_ok=True)
         if self._temporary is not None:
             self._temporary.cleanup()
 

@@ -75,12 +75,9 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
     `ddarm bench`'s batch (1000 episodes around the best gains) after the search, for its episodes/s to be read
     against.
     """
+    check_tune(template, index, method, budget, omegas, scenarios, aggregate)
     start_kp, start_kv = omega_starts(template, omegas)
     search = dict(index=index, budget=budget, method=method)
-    if scenarios is not None:
-        # Refused before the nominal search is spent; the first start stands in for its optimum, not known yet.
-        check_search(template, start_kp=np.vstack([start_kp, start_kp[:1]]),
-                     start_kv=np.vstack([start_kv, start_kv[:1]]), scenarios=scenarios, aggregate=aggregate, **search)
     start_indices = [run_episode(template.with_gains(kp, kv)).indices()[index]
                      for kp, kv in zip(start_kp, start_kv)]
     if scenarios is not None:
@@ -107,6 +104,17 @@ def tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEA
         rate = batch_rates(best, (BENCH_EPISODES,), rounds=1)[0]['episodes_per_s']
     return Tuning(result, tuple(float(w) for w in omegas), start_indices, wall, episode.indices(), warnings, robust,
                   rate)
+
+
+def check_tune(template: EpisodeSpec, index: str, method: str, budget: int, omegas=SEARCH_START_OMEGAS,
+               scenarios: tuple[EpisodeSpec, ...] | None = None, aggregate: str = 'worst') -> None:
+    """Refuse, with SearchError naming the argument, a tuning that tune (same arguments) cannot run; no episode run."""
+    start_kp, start_kv = omega_starts(template, omegas)
+    if scenarios is not None:
+        # The robust search's starts: the first stands in for the nominal optimum, not known yet.
+        start_kp, start_kv = np.vstack([start_kp, start_kp[:1]]), np.vstack([start_kv, start_kv[:1]])
+    check_search(template, index=index, start_kp=start_kp, start_kv=start_kv, budget=budget, method=method,
+                 scenarios=scenarios, aggregate=aggregate)
 
 
 def _timed_search(template: EpisodeSpec, **arguments) -> tuple[SearchResult, float]:
