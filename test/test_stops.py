@@ -51,10 +51,14 @@ def test_a_stopped_search_prints_one_line_and_leaves_nothing_half_written(tmp_pa
                     '--runs', str(tmp_path / 'runs'), '--run', 'stopped')
     first = process.stderr.readline()  # printed as the search starts
     assert first.startswith('searching'), first
+    # The graph's nodes start while the search runs: they stop with it.
+    wait_for(lambda: len(children(process.pid)) == 2 or process.poll() is not None, 60, 'the nodes started')
+    nodes = children(process.pid)
     err = interrupt(process, signal.SIGINT)
     assert process.returncode == 130, err
     assert 'Traceback' not in err and 'stopped by SIGINT' in err
     assert not (tmp_path / 'runs' / 'stopped').exists()
+    wait_for(lambda: not any(alive(pid) for pid in nodes), 10, 'the node processes ended')
 
 
 def test_an_interrupted_reproduction_is_marked_interrupted(tmp_path):
