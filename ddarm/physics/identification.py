@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 import scipy.optimize
-import scipy.signal
 
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import ARMATURE_ELEMENT, ARMATURE_NAMESPACE, Arm, read_urdf
@@ -77,6 +76,10 @@ def period_samples(q, v, torque, period: float, source: str = '', cutoff: float 
         if not 0 < cutoff < nyquist:
             raise IdentificationError(f'the filter cutoff must be within (0, {nyquist:g}) Hz (the Nyquist frequency '
                                       f'of Δ = {period:g} s), got {cutoff!r}')
+        # Imported here, not at the top: scipy.signal (with scipy.stats) took 0.4 s that every ddarm command, which
+        # imports this module through its `identify`, waited at its start.
+        import scipy.signal
+
         sections = scipy.signal.butter(4, cutoff / nyquist, output='sos')
         padding = 3 * 2 * len(sections) + 1  # sosfiltfilt's default, which needs more samples than this
         if len(q) <= padding:
