@@ -41,14 +41,18 @@ def follow_parent() -> None:
         raise SystemExit(f'the process that started this node ({parent}) is gone; not starting')
 
 
-def stop_processes(processes, stop: int = signal.SIGINT, timeout: float = 10.0, signalled=()) -> None:
-    """Stop node processes started by this one: `stop` (SIGINT: a node leaves the graph as after a Ctrl-C) to all
-    at once but the `signalled` ones (sent it before), then, for each still running after `timeout` s, SIGKILL; each
-    one waited for (no zombie left)."""
-    processes = list(processes)
+def tell_to_stop(processes, stop: int = signal.SIGINT) -> None:
+    """`stop` (SIGINT: a node leaves the graph as after a Ctrl-C) to each of `processes` still running, at once."""
     for process in processes:
         if process.poll() is None:
             process.send_signal(stop)
+
+
+def stop_processes(processes, stop: int = signal.SIGINT, timeout: float = 10.0, signalled=()) -> None:
+    """Stop node processes started by this one: `stop` to all at once (tell_to_stop) but the `signalled` ones (told
+    before), then, for each still running after `timeout` s, SIGKILL; each one waited for (no zombie left)."""
+    processes = list(processes)
+    tell_to_stop(processes, stop)
     for process in [*processes, *signalled]:
         try:
             process.wait(timeout=timeout)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -18,7 +17,7 @@ import yaml
 from ddarm.control.laws import CONTROLLERS
 from ddarm.ros.driver import GraphDriver, GraphEpisodeError
 from ddarm.ros.executors import node_executor
-from ddarm.ros.lifetime import child_environment, stop_processes
+from ddarm.ros.lifetime import child_environment, stop_processes, tell_to_stop
 from ddarm.ros.names import fully_qualified, namespace_arguments
 from ddarm.ros.node_parameters import (COMMAND_TIMEOUT, GRAPH_SUBSCRIBERS, SchedulingOptions, arm_parameters,
                                        episode_record, gains_parameters)
@@ -180,19 +179,20 @@ class GraphSession:
         """`record_and_score` on this session: run `spec` in lockstep, record it at `bag`, score the bag."""
         return record_and_score(self, spec, bag, storage=storage, command=command)
 
-    def _stop(self, *names: str, signalled=()) -> None:
+    def _released(self, names) -> list[subprocess.Popen]:
+        """The processes of the nodes `names`, no longer the session's."""
         for name in names:
             self.arms.pop(name, None)
-        stop_processes([self.processes.pop(name) for name in names], timeout=5, signalled=signalled)
+        return [self.processes.pop(name) for name in names]
+
+    def _stop(self, *names: str, signalled=()) -> None:
+        stop_processes(self._released(names), timeout=5, signalled=signalled)
 
     def stop_nodes(self) -> None:
         """Tell every node to stop, without waiting: they leave the graph while this process goes on; close waits."""
-        for name in list(self.processes):
-            self.arms.pop(name, None)
-            process = self.processes.pop(name)
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-            self._stopping.append(process)
+        released = self._released(list(self.processes))
+        tell_to_stop(released)
+        self._stopping += released
 
     def keep_files_in(self, folder: Path | str) -> None:
         """Where closing copies the session's folder (the nodes' logs, parameter files and DDS profile, complete once
