@@ -15,12 +15,12 @@ import yaml
 
 from ddarm.episodes.indices import INDICES
 from ddarm.errors import DdarmError
+from ddarm.recording import DEFAULT_ROOT
 from ddarm.datafiles import is_missing, unreachable
 from ddarm.recording.bags import BagError, checked_output_location, checked_output_path, child_path
 from ddarm.interrupts import Interrupted, critical_section
 from ddarm.strict_json import json_text
 
-DEFAULT_ROOT = Path('runs')
 SUMMARY_NAME = 'summary.json'
 
 

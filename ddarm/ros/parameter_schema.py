@@ -21,7 +21,7 @@ from ddarm.motion.programmed import PAPER_TRAJECTORIES
 from ddarm.physics.plant import MAX_SUBSTEPS, NODE_PERIOD_RANGE
 from ddarm.realtime import PRIORITY_RANGE, SPIN_MARGIN_RANGE
 from ddarm.recording.gains_file import MAX_NODE_DURATION
-from ddarm.recording.runs import DEFAULT_ROOT
+from ddarm.recording import DEFAULT_ROOT
 
 NODES = ('plant', 'robot', 'controller', 'tuner')
 TYPES = ('bool', 'integer', 'double', 'string', 'integer[]', 'double[]', 'string[]')
