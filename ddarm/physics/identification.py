@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
-import scipy.optimize
 
 from ddarm.errors import DdarmError
 from ddarm.physics.arm import ARMATURE_ELEMENT, ARMATURE_NAMESPACE, Arm, read_urdf
@@ -338,6 +337,8 @@ def identify_payload(arm: Arm, data: PeriodSamples, link: str, point, max_condit
     residual = target - columns @ free
     variance = float(residual @ residual) / max(len(target) - columns.shape[1], 1)
     std = np.sqrt(np.diag(variance * np.linalg.inv(columns.T @ columns)))
+    import scipy.optimize  # see period_samples: 0.3 s that every ddarm command waited for
+
     bounded = scipy.optimize.lsq_linear(columns, target, bounds=(0.0, np.inf)).x
     estimate = prior.copy()
     estimate[links:] = bounded[:-1]
@@ -397,6 +398,8 @@ def _consistent_fit(arm: Arm, weighted: np.ndarray, target: np.ndarray, prior: n
     initial = np.concatenate([*(_theta_from_link(start[LINK_SIZE * i:LINK_SIZE * (i + 1)], floors[i])
                                 for i in range(n)), np.maximum(start[links:], 0.0)])
     lower = np.concatenate([np.full(links, -np.inf), np.zeros(len(prior) - links)])
+    import scipy.optimize  # see period_samples
+
     fit = scipy.optimize.least_squares(residuals, initial, jac=jacobian, bounds=(lower, np.inf), max_nfev=100)
     return phi(fit.x)
 

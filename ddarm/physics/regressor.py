@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
-import scipy.linalg
 
 from ddarm.physics.arm import Arm
 
@@ -55,6 +54,8 @@ def base_columns(stacked: np.ndarray, tolerance: float = BASE_TOLERANCE) -> np.n
     scale = np.linalg.norm(stacked, axis=0)
     # A column of rounding errors alone (a first moment along a joint's axis, say) moves no torque at all.
     used = np.flatnonzero(scale > tolerance * np.max(scale, initial=0.0))
+    import scipy.linalg  # here, not at the top: 0.2 s that every ddarm command waited for (through identify)
+
     _, r, pivots = scipy.linalg.qr(stacked[:, used] / scale[used], mode='economic', pivoting=True)
     diagonal = np.abs(np.diag(r))
     rank = int(np.sum(diagonal > tolerance * diagonal[0])) if len(diagonal) else 0
