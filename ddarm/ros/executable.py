@@ -7,6 +7,8 @@ the tuner node (a sweep with exit codes of its own) share this flow through `run
 
 from __future__ import annotations
 
+import atexit
+import gc
 import os
 import re
 import sys
@@ -20,6 +22,9 @@ REFUSED = 2  # the exit code of a node that refused to start
 SIGNAL_CHECK_PERIOD_S = 0.2  # the longest a spinning node waits in rcl before its signal handlers run
 # The arguments each context was initialised with by `run_executable` (rclpy keeps no public copy).
 _ARGUMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# Last of the exit handlers, as in ddarm.cli.main: a node's objects are not searched for cycles as its interpreter
+# ends (its context and node are shut down and destroyed before), so a stopped node leaves the graph sooner.
+atexit.register(gc.freeze)
 
 
 def context_arguments(context) -> list[str]:
