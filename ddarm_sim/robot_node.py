@@ -29,7 +29,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from ddarm.arrays import per_joint
-from ddarm.physics.mujoco_plant import RobotError, load_robot, robot_joints
+from ddarm.physics.mujoco_plant import RobotError, load_robot, robot_joints, warm_up
 from ddarm.physics.simulated_robot import Realism, RealismError, SimulatedRobot
 from ddarm.realtime import SchedulingError, TickThread, period_ns
 from ddarm.ros.cdr import JointStateEncoder, Stamp, encode_clock, stamp_of_ns
@@ -124,6 +124,7 @@ class RobotNode(ManagedNode):
         self.period = 1.0 / values['rate']
         joints, prismatic = robot_joint_order(values['mjcf'], list(values['joints'] or []))
         robot = load_robot(values['mjcf'], joints, prismatic, self.period)
+        warm_up()
         for warning in robot.warnings():
             self.get_logger().warning(warning)
         latency = values['command_latency']

@@ -266,6 +266,13 @@ def at_period(robot: Robot, period: float) -> Robot:
     return dataclasses.replace(robot, steps_per_period=_steps(robot.path, robot.model, period), period=period)
 
 
+def warm_up() -> None:
+    """Load the compiled saturation that MujocoPlant.saturate calls (from numba's cache, or compile it) now: loaded at
+    a realtime robot's first period, it took 0.3 s (numba's linear algebra imports scipy.linalg with it) and made
+    that episode's first periods late."""
+    saturate(np.zeros((1, 1)), np.full((1, 1), np.inf), np.empty((1, 1)), 1)
+
+
 class MujocoPlant:
     """One episode's robot in MuJoCo: the state (q, q̇) at sample n, advanced one sampling period at a time.
 
