@@ -35,6 +35,12 @@ def pytest_configure(config):
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 
+def pytest_unconfigure(config):
+    """The domain IDs released as the run ends (closed here, not left to the interpreter's end, which warned)."""
+    while _held_locks:
+        _held_locks.pop().close()
+
+
 @pytest.fixture(scope='session', autouse=True)
 def compiled_loop():
     """The compiled loop built once, before any test starts a node process that loads it (a fresh checkout
