@@ -221,7 +221,10 @@ def state_ahead(node, msg):
     (reset_controller, 'was reconfigured, reset or sent another reference during the episode'),
     (replace_reference, 'was reconfigured, reset or sent another reference during the episode'
                         "|/reference is published by \\['/tuner', '/visitor'\\]"),
-    (state_ahead, r'a joint state for sample \d+ where sample \d+ was due'),
+    # The intruder's publisher is new: its state reaches the driver once discovery has matched it, which on a loaded
+    # machine can come after the plant has passed that sample (seen once in a full run), and then it is the second.
+    (state_ahead, r'a joint state for sample \d+ where sample \d+ was due'
+                  r'|two joint states for sample \d+: a second publisher on /joint_states\?'),
 ])
 def test_a_node_that_meddles_once_during_the_episode_fails_it(ros_context, hand_started, act, problem):
     """Services and one-shot publishers slip past any graph check: the controller's configuration count
