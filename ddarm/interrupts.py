@@ -1,14 +1,26 @@
 """SIGINT and SIGTERM as one exception, so every ddarm command stops the same way: children stopped,
-the bag under way closed as incomplete, the run marked interrupted, one line, exit 128 + signal."""
+the bag under way closed as incomplete, the run marked interrupted, one line, exit 128 + signal; and a process's
+end without the interpreter's search for cycles (skip_cycle_search_at_exit)."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import gc
 import signal
 import sys
 import threading
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def skip_cycle_search_at_exit() -> None:
+    """For a process's entry point (a command, a node), which closes its files, bags and ROS contexts itself: at exit,
+    gc.freeze, so that the interpreter's end no longer searches every object left for cycles (a command that had
+    loaded the search, the plots and rclpy spent 0.5 s of its exit in that search, a stopped node 0.35 s before it
+    left the graph). Registered once per process, whichever entry points it passed."""
+    atexit.unregister(gc.freeze)
+    atexit.register(gc.freeze)
 
 
 class Interrupted(BaseException):

@@ -8,8 +8,6 @@ SIGTERM exits 128 + the signal, and anything else is a bug whose traceback shows
 from __future__ import annotations
 
 import argparse
-import atexit
-import gc
 import re
 import sys
 
@@ -35,7 +33,7 @@ from ddarm.cli.stability import add_stability_parser
 from ddarm.cli.identify import add_identify_parser
 from ddarm.cli.transfer import add_transfer_parser
 from ddarm.cli.motion import add_motion_parser
-from ddarm.interrupts import Interrupted, stop_on_signals
+from ddarm.interrupts import Interrupted, skip_cycle_search_at_exit, stop_on_signals
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
 
 
@@ -162,13 +160,8 @@ def starts_ros(args: argparse.Namespace) -> bool:
     return any(getattr(args, flag, False) for flag in ('starts_ros', 'takes_ros_arguments', 'ros', 'realtime'))
 
 
-# Last of the exit handlers: the objects left are not searched for cycles as the interpreter ends. A command that
-# loaded the search, the plots and rclpy spent 0.5 s of its exit looking for cycles; every file, bag and ROS context
-# is closed explicitly before, and the memory goes back with the process.
-atexit.register(gc.freeze)
-
-
 def main(argv: list[str] | None = None) -> int:
+    skip_cycle_search_at_exit()
     with terminal_streams():  # argparse's refusals quote the arguments, and every command prints names from files
         return _main(sys.argv[1:] if argv is None else argv)
 

@@ -7,14 +7,13 @@ the tuner node (a sweep with exit codes of its own) share this flow through `run
 
 from __future__ import annotations
 
-import atexit
-import gc
 import os
 import re
 import sys
 import weakref
 from collections.abc import Callable, Sequence
 
+from ddarm.interrupts import skip_cycle_search_at_exit
 from ddarm.reporting.text import shortened
 from ddarm.ros.parameter_files import ParameterFileError, read_parameter_files, refuse_unconfigured
 
@@ -22,9 +21,6 @@ REFUSED = 2  # the exit code of a node that refused to start
 SIGNAL_CHECK_PERIOD_S = 0.2  # the longest a spinning node waits in rcl before its signal handlers run
 # The arguments each context was initialised with by `run_executable` (rclpy keeps no public copy).
 _ARGUMENTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-# Last of the exit handlers, as in ddarm.cli.main: a node's objects are not searched for cycles as its interpreter
-# ends (its context and node are shut down and destroyed before), so a stopped node leaves the graph sooner.
-atexit.register(gc.freeze)
 
 
 def context_arguments(context) -> list[str]:
@@ -163,6 +159,8 @@ def run_executable(name: str, make_node: Callable, refusals: tuple, args: Sequen
     """
     import rclpy
     from rclpy.exceptions import ParameterException
+
+    skip_cycle_search_at_exit()
 
     def refuse(error) -> int:
         print(f'{name}: refused to start: {shortened(error)}', file=out, flush=True)
