@@ -367,6 +367,24 @@ def test_without_mujoco_installed_mjcf_says_how_to_install_it(two_link):
     assert "MuJoCo is not installed: pip install 'ddarm[mujoco]'" in done.stderr and 'Traceback' not in done.stderr
 
 
+def test_a_stop_that_lands_in_mujocos_import_is_the_stop_not_a_missing_mujoco(monkeypatch):
+    """mujoco's C initialisation turns an exception raised in it by a signal handler into ImportError
+    ('initialization failed'): with a stop asked for, that ImportError is the stop (a robot node stopped as it
+    configured said MuJoCo was not installed); without one, it is the missing MuJoCo it seems."""
+    import signal
+    import sys
+
+    from ddarm import interrupts
+    from ddarm.physics.mujoco_plant import RobotError, import_mujoco
+
+    monkeypatch.setitem(sys.modules, 'mujoco', None)  # `import mujoco` raises ImportError
+    with pytest.raises(RobotError, match='MuJoCo is not installed'):
+        import_mujoco()
+    monkeypatch.setattr(interrupts, '_requested', signal.SIGINT)
+    with pytest.raises(interrupts.Interrupted):
+        import_mujoco()
+
+
 def test_mujoco_is_imported_only_when_a_robot_is_given(two_link):
     import subprocess
     import sys

@@ -19,6 +19,7 @@ import numpy as np
 
 from ddarm.datafiles import MAX_FILE_BYTES, regular_file_problem
 from ddarm.errors import DdarmError
+from ddarm.interrupts import check_stop
 from ddarm.physics.plant import DEFAULT_MAX_POSITION, DEFAULT_MAX_VELOCITY, beyond_bounds, saturate
 
 INSTALL_HINT = "MuJoCo is not installed: pip install 'ddarm[mujoco]'"
@@ -39,6 +40,9 @@ def import_mujoco():
     try:
         import mujoco
     except ImportError:
+        # A stop (Ctrl-C, SIGTERM) that lands in mujoco's C initialisation comes out of it as an ImportError
+        # ('initialization failed'): that is the stop, not a missing MuJoCo (a node stopped as it configured said so).
+        check_stop()
         raise RobotError(INSTALL_HINT) from None
     return mujoco
 
