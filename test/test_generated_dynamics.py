@@ -192,6 +192,26 @@ def test_looped_dynamics_beyond_the_unrolled_size_are_pinocchios(fresh_cache, n,
                                    atol=1e-9)
 
 
+@pytest.mark.parametrize('n, tree', [(generated.UNROLLED_JOINTS, True), (7, False), (3, False)])
+def test_a_state_gets_the_same_bits_in_a_whole_block_in_a_partial_one_and_alone(fresh_cache, n, tree):
+    # The unrolled kernels run VECTOR_LANES states at a time in SIMD registers and the rest one by one: 2 whole blocks
+    # and 3 states over, against each state in a call of its own.
+    chain = chain_from_model(random_model(n, seed=3 * n, tree=tree))
+    assert 'for i in range(N)' not in dynamics_source(chain)
+    rng = np.random.default_rng(n)
+    count = 2 * generated.VECTOR_LANES + 3
+    q, v, a = rng.uniform(-3, 3, (count, n)), rng.uniform(-3, 3, (count, n)), rng.uniform(-10, 10, (count, n))
+    mass_scale = rng.uniform(0.8, 1.3, (count, n))
+    torque = inverse_dynamics_at(chain, q, v, a, mass_scale=mass_scale)
+    acceleration = forward_dynamics_at(chain, q, v, torque, mass_scale=mass_scale)
+    for m in range(count):
+        alone = slice(m, m + 1)
+        np.testing.assert_array_equal(inverse_dynamics_at(chain, q[alone], v[alone], a[alone], mass_scale[alone]),
+                                      torque[alone])
+        np.testing.assert_array_equal(forward_dynamics_at(chain, q[alone], v[alone], torque[alone],
+                                                          mass_scale[alone]), acceleration[alone])
+
+
 def test_the_generated_code_grows_linearly_with_the_joint_count_beyond_the_unrolled_size():
     sizes = {n: len(dynamics_source(chain_from_model(random_model(n, seed=1, tree=False)))) for n in (16, 32, 64)}
     per_joint = [(sizes[32] - sizes[16]) / 16, (sizes[64] - sizes[32]) / 32]

@@ -27,6 +27,7 @@ from ddarm.episodes.stepwise import run_stepwise
 from ddarm.errors import DdarmError
 from ddarm.motion.programmed import MotionError, disturbed_start
 from ddarm.physics.dynamics import cached_njit, compiled_dynamics, load_chain
+from ddarm.physics.generated import UNROLLED_JOINTS, VECTOR_LANES
 from ddarm.physics.mujoco_plant import MujocoPlant, RobotError
 from ddarm.physics.plant import PlantError, advance, checked_mass_scale, saturate, step_workspace
 from ddarm.physics.plant import warm_up as plant_warm_up
@@ -41,17 +42,22 @@ MAX_THREADS = 256
 # A batch shares out across threads only this many members per thread or more: a smaller share costs more in
 # handing it over than it saves. Measured side by side (best of 9, one thread against two): on the paper's arm,
 # whose members run 8 to a SIMD vector, 8 members took 1.18 ms against 1.77 ms, 32 took 3.66 ms against 2.96 ms and
-# 48 5.50 ms against 3.90 ms; on the Panda, whose members each cost about 1.2 ms, 8 took 9.87 ms against 5.71 ms.
+# 48 5.50 ms against 3.90 ms. A member of a 5- to 8-joint arm costs several times as much, and a share of 5 already
+# pays, padded to a whole vector (Panda, best of 7: 10 members 7.39 ms against 6.25 ms, 12 8.37 against 4.86; 8
+# members, 4 a thread, 4.30 against 4.77). The looped chains beyond UNROLLED_JOINTS run one member at a time (the
+# Panda's did too, before its lanes ran as vectors: 8 members 9.87 ms against 5.71 ms).
 MIN_MEMBERS_PER_THREAD = 16
+MIN_MEMBERS_PER_THREAD_HEAVY = 5
 MIN_MEMBERS_PER_THREAD_UNVECTORISED = 4
-# On arms of up to VECTOR_JOINTS joints the compiled lane loops run VECTOR_LANES members at a time in SIMD registers
-# and the members left over one by one, each at about 2.3 times the cost (measured on the paper's arm: 7 members
-# took 2.18 ms, 8 took 1.28 ms; the same on the SCARA). There a chunk with PAD_FROM or more members left over runs a
-# whole vector instead, the spare lanes repeating its last member; their results are dropped. Each member's
-# arithmetic is the same in either path, to the last bit. On the UR5, the Z1 and the Panda (6 and 7 joints) a lane
-# cost about as much alone as in a vector (4 members 3.2 ms, 8 members 5.9 ms on the UR5): no padding there.
-VECTOR_LANES = 8
-VECTOR_JOINTS = 4
+HEAVY_JOINTS = 5
+# On arms of up to VECTOR_JOINTS joints (those whose dynamics are unrolled, see ddarm.physics.generated) the
+# generated dynamics run VECTOR_LANES members at a time in SIMD registers and the members left over one by one, each
+# at about 2 to 3 times the cost (measured on the paper's arm: 7 members took 2.18 ms, 8 took 1.28 ms; the same on
+# the SCARA; on the Panda 7 members 9.60 ms, 8 4.19 ms). There a chunk with PAD_FROM or more members left over runs a
+# whole vector instead, the spare lanes repeating its last member; their results are dropped (Panda: 4 members took
+# 5.90 ms, 4.41 ms padded; 3 members 4.81 ms, a whole vector 4.2-4.4 ms; 2 members 3.32 ms). Each member's
+# arithmetic is the same in either path, to the last bit.
+VECTOR_JOINTS = UNROLLED_JOINTS
 PAD_FROM = 4
 
 
@@ -290,7 +296,8 @@ class BatchRunner:
                              f'ask for fewer episodes or no series')
         if threads is None:
             threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
-        least = MIN_MEMBERS_PER_THREAD if dof <= VECTOR_JOINTS else MIN_MEMBERS_PER_THREAD_UNVECTORISED
+        least = (MIN_MEMBERS_PER_THREAD if dof < HEAVY_JOINTS else MIN_MEMBERS_PER_THREAD_HEAVY
+                 if dof <= VECTOR_JOINTS else MIN_MEMBERS_PER_THREAD_UNVECTORISED)
         threads = min(threads, max(1, size // least))
         # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not

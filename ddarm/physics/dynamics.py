@@ -38,8 +38,10 @@ import numba
 import numpy as np
 import pinocchio as pin
 from numba import types
+from numba.core import cgutils
 from numba.core.caching import CompileResultCacheImpl, FunctionCache, IndexDataCacheFile, InTreeCacheLocator
 from numba.core.types.function_type import CompileResultWAP
+from numba.extending import intrinsic
 
 from ddarm.physics.arm import PINOCCHIO_JOINTS, ModelError, is_prismatic, load_arm, urdf_stamp
 # The most joints a chain may have (ddarm's one bound on joints), refused before anything is generated beyond
@@ -167,6 +169,21 @@ def typed_entry(dispatcher, *arguments):
     takes; a node makes one such call per sample, with arrays it makes itself, so it types them once.
     """
     return dispatcher.compile(tuple(numba.typeof(argument) for argument in arguments))
+
+
+@intrinsic
+def stack_buffer(typingctx, count):
+    """A pointer to `count` (a constant) float64 on the calling function's stack, uninitialised; wrap it in
+    numba.carray. numba has no stack arrays, and the generated kernels' scratch taken from the heap (np.empty) cost a
+    member alone as much again as its copies (Panda, forward dynamics: 0.51 µs against 0.39 µs); LLVM also knows
+    that the stack does not overlap the kernels' arguments."""
+    if not isinstance(count, types.IntegerLiteral) or count.literal_value < 1:
+        return None
+    size = count.literal_value
+
+    def codegen(context, builder, signature, arguments):
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=size)
+    return types.CPointer(types.float64)(count), codegen
 
 
 @dataclass(frozen=True)
