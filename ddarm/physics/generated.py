@@ -334,46 +334,55 @@ def _solve_spd(code: _Code, matrix, rhs):
 INDENT = ' ' * 8
 
 
-# The members a kernel evaluates together, one AVX-512 vector of doubles (two AVX vectors).
+# The members a kernel evaluates together in blocks, one AVX-512 vector of doubles (two AVX vectors).
 VECTOR_LANES = 8
-BLOCK_INDENT = ' ' * 12
+# Up to this many joints the kernels loop over the arguments' lanes directly, and LLVM vectorises that loop.
+DIRECT_JOINTS = 5
 
 
 def _kernel(name: str, doc: str, third: str, chain: _Chain, body) -> str:
     """A compiled function (scale, q, v, <third>, out, lanes): arrays of shape (n, lanes), one member per lane.
 
-    The lanes run in blocks of VECTOR_LANES: each block's inputs are copied to one buffer on the stack, row after
-    row, and its results written to another, then copied out. LLVM vectorises a loop across lanes only if it can
-    rule out that the loop's stores overlap its loads: over the arguments themselves, every row a pointer of its
-    own, it gave up ("too many memory checks needed", 28 rows read and 7 written on the Panda), and two heap buffers
-    at a stride of a member (vectorised on the UR5 and the Panda) made the loads too costly for it on the SCARA. In
-    a block the rows sit at constant offsets on the stack, which overlaps no argument. Measured per member of 64,
-    forward dynamics: UR5 0.26 µs before, 0.11 µs after; Panda 0.35 µs, 0.14 µs; a member alone as before.
+    LLVM vectorises a loop across lanes only if it can rule out at run time that the loop's stores overlap its
+    loads. Over the arguments themselves every row is a pointer of its own, and beyond DIRECT_JOINTS joints it gives
+    up ("too many memory checks needed": 24 rows read and 6 written on the UR5). There the lanes run in blocks of
+    VECTOR_LANES, each block's inputs copied to a buffer on the stack at constant offsets, which overlaps no
+    argument, and its results copied back. Measured per member of 64, forward dynamics: UR5 0.20 µs direct, 0.09 µs
+    in blocks; Panda 0.34 µs, 0.13 µs; a Panda member alone 0.38 µs, 0.43 µs. On the arms LLVM vectorises directly,
+    the copies would cost a third more (paper's arm 29 ns, 38 ns in blocks).
     """
-    code = _Code(BLOCK_INDENT)
     n = chain.n
     keys = ('scale', 'q', 'v', third)
-    width = VECTOR_LANES
+    header = ['@generated_kernel(COMPILED)', f'def {name}(scale, q, v, {third}, out, lanes):', f'    """{doc}"""']
+    if n <= DIRECT_JOINTS:
+        code = _Code(INDENT)
+        values = {key: [code.let(f'{key}[{i}, b]') for i in range(n)] for key in keys}
+        code.lines += [f'{INDENT}out[{i}, b] = {_term(value)}' for i, value in enumerate(body(code, values))]
+        return '\n'.join([*header, '    for b in range(lanes):', *code.lines, ''])
+    indent, width = ' ' * 12, VECTOR_LANES
+    code = _Code(indent)
     values = {key: [code.let(f'inputs[{(k * n + i) * width} + j]') for i in range(n)] for k, key in enumerate(keys)}
-    outputs = body(code, values)
-    for i, value in enumerate(outputs):
-        code.lines.append(f'{BLOCK_INDENT}result[{i * width} + j] = {_term(value)}')
+    code.lines += [f'{indent}result[{i * width} + j] = {_term(value)}' for i, value in enumerate(body(code, values))]
     size = len(keys) * n * width
-    return '\n'.join(['@generated_kernel(COMPILED)',
-                      f'def {name}(scale, q, v, {third}, out, lanes):',
-                      f'    """{doc}"""',
+    return '\n'.join([*header,
                       f'    inputs = numba.carray(stack_buffer({size}), {size})',
                       f'    result = numba.carray(stack_buffer({n * width}), {n * width})',
                       f'    for start in range(0, lanes, {width}):',
                       f'        block = min({width}, lanes - start)',
-                      f'        for i in range({n}):',
-                      '            for j in range(block):',
-                      *(f'                inputs[{k * n * width} + i * {width} + j] = {key}[i, start + j]'
-                        for k, key in enumerate(keys)),
+                      *_copies(f'inputs[{{}} + i * {width} + j] = {{}}[i, start + j]', n,
+                               [(k * n * width, key) for k, key in enumerate(keys)]),
                       '        for j in range(block):', *code.lines,
-                      f'        for i in range({n}):',
-                      '            for j in range(block):',
-                      f'                out[i, start + j] = result[i * {width} + j]', ''])
+                      *_copies(f'out[i, start + j] = result[i * {width} + j]', n, [()]), ''])
+
+
+def _copies(line: str, n: int, fills: list) -> list[str]:
+    """The loops copying a block's rows: over a constant count of lanes for a whole block, which LLVM turns into
+    vector moves (Panda, forward dynamics per member of 64: 0.126 µs, against 0.140 µs copied lane by lane)."""
+    def loop(count: str, indent: str) -> list[str]:
+        return [f'{indent}for i in range({n}):', f'{indent}    for j in range({count}):',
+                *(f'{indent}        {line.format(*fill)}' for fill in fills)]
+    return [f'        if block == {VECTOR_LANES}:', *loop(str(VECTOR_LANES), ' ' * 12), '        else:',
+            *loop('block', ' ' * 12)]
 
 
 def _unrolled(constants: _Chain) -> str:
@@ -670,11 +679,12 @@ def dynamics_source(chain) -> str:
     check_joint_count(len(chain.parent))
     constants = _Chain(chain)
     looped = constants.n > UNROLLED_JOINTS
+    blocks = DIRECT_JOINTS < constants.n <= UNROLLED_JOINTS
     header = '\n'.join([
         f'"""Generated by ddarm.physics.generated (version {GENERATOR_VERSION}) for a chain of {constants.n} '
         f'joints; do not edit."""',
         'import numba', 'import numpy as np',
-        f'from ddarm.physics.dynamics import generated_kernel{"" if looped else ", stack_buffer"}', '',
+        f'from ddarm.physics.dynamics import generated_kernel{", stack_buffer" if blocks else ""}', '',
         # Written out, not imported: numba's cache does not see the options, the file's hash must.
         f'COMPILED = {COMPILED!r}', '', ''])
     return header + (_looped(chain, constants) if looped else _unrolled(constants))
