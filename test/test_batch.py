@@ -125,15 +125,20 @@ def test_the_result_does_not_depend_on_the_number_of_threads():
     np.testing.assert_array_equal(one.diverged_at, two.diverged_at)
 
 
-@pytest.mark.parametrize('size, threads', [(5, 1), (12, 1), (15, 2), (90, 2)])
-def test_a_padded_chunk_gives_each_member_its_own_episode_to_the_last_bit(size, threads):
+@pytest.mark.parametrize('size, threads, arm', [(5, 1, None), (12, 1, None), (15, 2, None), (90, 2, None),
+                                                (13, 2, 'ur5')])
+def test_a_padded_chunk_gives_each_member_its_own_episode_to_the_last_bit(size, threads, arm):
     # Chunks with 4 to 7 members left over past a whole vector run padded (VECTOR_LANES): the spare lanes repeat a
-    # member and are dropped; every member, one that diverges among them, is its batch of one, series and all.
+    # member and are dropped; every member, one that diverges among them, is its batch of one, series and all. The
+    # UR5's dynamics run in blocks copied to the stack (ddarm.physics.generated), the paper's arm's directly.
     rng = np.random.default_rng(9)
-    kp = 225.0 * np.exp(0.3 * rng.normal(size=(size, 3)))
-    kv = 30.0 * np.exp(0.3 * rng.normal(size=(size, 3)))
+    n = 3 if arm is None else 6
+    kp = 225.0 * np.exp(0.3 * rng.normal(size=(size, n)))
+    kv = 30.0 * np.exp(0.3 * rng.normal(size=(size, n)))
     kp[size - 2], kv[size - 2] = 1e6, 3e3
-    template = EpisodeSpec(**CT_15, tau=0.1)
+    template = EpisodeSpec(**CT_15, tau=0.1) if arm is None else EpisodeSpec(
+        controller='computed_torque', kp=kp[0], kv=kv[0], urdf=str(ROOT / 'config' / 'arms' / arm / f'{arm}.urdf'),
+        motion=str(ROOT / 'config' / 'arms' / arm / f'{arm}-motion.yaml'), delay=1)
     batch = simulate_batch(template, kp, kv, series=True, threads=threads)
     assert batch.I.shape == (size,) and batch.q.shape[0] == size and batch.diverged[size - 2]
     for member in range(size):
