@@ -42,12 +42,12 @@ MAX_THREADS = 256
 # A batch shares out across threads only this many members per thread or more: a smaller share costs more in
 # handing it over than it saves. Measured side by side (best of 9, one thread against two): on the paper's arm,
 # whose members run 8 to a SIMD vector, 8 members took 1.18 ms against 1.77 ms, 32 took 3.66 ms against 2.96 ms and
-# 48 5.50 ms against 3.90 ms. A member of a 5- to 8-joint arm costs several times as much, and a share of 5 already
-# pays, padded to a whole vector (Panda, best of 7: 10 members 7.39 ms against 6.25 ms, 12 8.37 against 4.86; 8
-# members, 4 a thread, 4.30 against 4.77). The looped chains beyond UNROLLED_JOINTS run one member at a time (the
-# Panda's did too, before its lanes ran as vectors: 8 members 9.87 ms against 5.71 ms).
+# 48 5.50 ms against 3.90 ms. A member of an arm of HEAVY_JOINTS to VECTOR_JOINTS joints costs 2 (5 joints) to 4
+# times as much, and a second thread pays as soon as a batch needs a second vector, each thread's share padded to a
+# whole one (Panda, best of 9: 8 members took 6.02 ms against 6.81 ms, 9 took 8.44 against 6.63, 10 10.40 against
+# 6.95). The looped chains beyond UNROLLED_JOINTS run one member at a time (the Panda's did too, before its lanes ran
+# as vectors: 8 members 9.87 ms against 5.71 ms).
 MIN_MEMBERS_PER_THREAD = 16
-MIN_MEMBERS_PER_THREAD_HEAVY = 5
 MIN_MEMBERS_PER_THREAD_UNVECTORISED = 4
 HEAVY_JOINTS = 5
 # On arms of up to VECTOR_JOINTS joints (those whose dynamics are unrolled, see ddarm.physics.generated) the
@@ -296,9 +296,13 @@ class BatchRunner:
                              f'ask for fewer episodes or no series')
         if threads is None:
             threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
-        least = (MIN_MEMBERS_PER_THREAD if dof < HEAVY_JOINTS else MIN_MEMBERS_PER_THREAD_HEAVY
-                 if dof <= VECTOR_JOINTS else MIN_MEMBERS_PER_THREAD_UNVECTORISED)
-        threads = min(threads, max(1, size // least))
+        if dof < HEAVY_JOINTS:
+            shares = size // MIN_MEMBERS_PER_THREAD
+        elif dof <= VECTOR_JOINTS:
+            shares = -(-size // VECTOR_LANES)
+        else:
+            shares = size // MIN_MEMBERS_PER_THREAD_UNVECTORISED
+        threads = min(threads, max(1, shares))
         # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not
         # 32 + 32 and 26.
