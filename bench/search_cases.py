@@ -18,6 +18,7 @@ diverged, its joint6 being stopped by its damping within a substep, as `ddarm ep
     .venv/bin/python bench/search_cases.py ../shared/search-cases.json ../shared/search-cases-arms.json \
         bench/search-cases-own.json
     .venv/bin/python bench/search_cases.py CASES.json --only 0 3 --json results.json
+    .venv/bin/python bench/search_cases.py ../shared/search-cases.json --only 2 3 --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ from ddarm.episodes.engine import simulate_batch, warm_up
 from ddarm.tuning.tune import tune
 
 
-def run_case(case: dict, budget: int | None = None) -> dict:
-    words = shlex.split(case['command']) + ([] if budget is None else ['--budget', str(budget)])
+def run_case(case: dict, budget: int | None = None, seed: int | None = None) -> dict:
+    words = (shlex.split(case['command']) + ([] if budget is None else ['--budget', str(budget)])
+             + ([] if seed is None else ['--seed', str(seed)]))
     args = build_parser().parse_args(words[1:])
     template = episode_spec(args)
     started = time.perf_counter()
@@ -50,7 +52,7 @@ def run_case(case: dict, budget: int | None = None) -> dict:
     rescored = (float(getattr(simulate_batch(template, [known['kp']], [known['kv']]), search.index_name)[0])
                 if known is not None else float('nan'))
     return {
-        'command': case['command'], 'best_known': case['objective'], 'rescored': rescored,
+        'command': case['command'], 'seed': args.seed, 'best_known': case['objective'], 'rescored': rescored,
         'found': float(search.index),
         'gap': float(search.index) / (rescored if known is not None else case['objective']) - 1.0,
         'wall_time_s': wall, 'episodes': search.episodes,
@@ -65,26 +67,29 @@ def main() -> int:
     parser.add_argument('--only', type=int, nargs='+', help='the cases to run, by their number in the listing')
     parser.add_argument('--json', type=Path, help='write the results here too')
     parser.add_argument('--budget', type=int, help="each case's --budget (default: its command's, or ddarm tune's)")
+    parser.add_argument('--seeds', type=int, nargs='+',
+                        help="run each case once from each of these --seed (default: its command's, or ddarm tune's)")
     options = parser.parse_args()
     cases = [case for path in options.cases for case in json.loads(path.read_text())]
     warm_up()
     results = []
-    print(f"{'#':>2}  {'best known':>12}  {'rescored':>12}  {'found':>12}  {'gap':>8}  {'wall s':>7}  "
+    print(f"{'#':>2}  {'seed':>4}  {'best known':>12}  {'rescored':>12}  {'found':>12}  {'gap':>8}  {'wall s':>7}  "
           f"{'episodes':>8}  certificate")
     for number, case in enumerate(cases):
         if options.only is not None and number not in options.only:
             continue
-        result = run_case(case, options.budget)
-        results.append(result)
-        certificate = result['certificate']
-        print(f"{number:>2}  {result['best_known']:>12.6g}  {result['rescored']:>12.6g}  "
-              f"{result['found']:>12.6g}  {100 * result['gap']:>7.2f}%  "
-              f"{result['wall_time_s']:>7.1f}  {result['episodes']:>8}  "
-              f"{'' if certificate is None else certificate['summary']}", flush=True)
+        for seed in [None] if options.seeds is None else options.seeds:
+            result = run_case(case, options.budget, seed)
+            results.append(result)
+            certificate = result['certificate']
+            print(f"{number:>2}  {result['seed']:>4}  {result['best_known']:>12.6g}  {result['rescored']:>12.6g}  "
+                  f"{result['found']:>12.6g}  {100 * result['gap']:>7.2f}%  "
+                  f"{result['wall_time_s']:>7.1f}  {result['episodes']:>8}  "
+                  f"{'' if certificate is None else certificate['summary']}", flush=True)
     gaps = np.array([result['gap'] for result in results])
     gaps = gaps[np.isfinite(gaps)]  # the cases with a known minimum
     if len(gaps):
-        print(f'within 1 %: {int(np.sum(gaps <= 0.01))} of {len(gaps)} with a known minimum; '
+        print(f'within 1 %: {int(np.sum(gaps <= 0.01))} of {len(gaps)} searches with a known minimum; '
               f'worst gap {100 * gaps.max():.2f} %')
     if options.json is not None:
         options.json.write_text(json.dumps(results, indent=1))
