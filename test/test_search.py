@@ -118,6 +118,8 @@ def test_a_budget_too_small_says_not_converged_and_never_claims_convergence(budg
     summary = result.certificate.summary()
     assert summary.startswith('not converged: ') and f'try --budget {2 * budget}' in summary
     assert result.certificate.to_dict()['converged'] is False
+    # A polish the budget left no room for is no run of the certificate.
+    assert all(run.episodes > 0 for run in result.restarts if 'polish' in run.start)
 
 
 def test_the_other_methods_give_no_certificate():

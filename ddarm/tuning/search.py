@@ -786,8 +786,8 @@ def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name
 def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rng, stall: float | None):
     """Nelder-Mead from the best `starts` (their `values` known) that START_SHARE of the budget left has room for,
     each an independent run (the others keep their start's index), then the CMA-ES polish of their best distinct ends
-    on at most POLISH_SHARE of the budget then left, with `rng`'s draws. A run (see _side_by_side) that returns their
-    Restarts."""
+    on at most POLISH_SHARE of the budget then left, with `rng`'s draws (a run only if that has room for a population).
+    A run (see _side_by_side) that returns their Restarts."""
     phase = _Allowance(objective, int(START_SHARE * objective.remaining))
     taken = np.sort(np.argsort(values, kind='stable')[:phase.remaining // (starts.shape[1] + 1)])
     bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
@@ -801,8 +801,9 @@ def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rn
     if len(taken):
         polish = _Allowance(objective, int(POLISH_SHARE * objective.remaining))
         best, stopped_by = yield from _polish(polish, *phase.history(), rng, POLISH_SIGMA, stall)
-        runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, polish.episodes, best,
-                            stopped_by))
+        if polish.episodes:
+            runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, polish.episodes, best,
+                                stopped_by))
     return runs
 
 
