@@ -106,12 +106,11 @@ START_SHARE = 0.3
 # 20.73 and 4.755 (best known 21.53 and 4.900), where every DE run had stopped at 24.65 and 5.098. σ0 = 0.1 went
 # further and in fewer episodes than 0.01 (20.49 in 55,000 against 20.75 in 74,000 on case 2). Such a polish creeps on
 # down its valley for as long as it may: on half the budget left it ended on its share on cases 2 and 3 still
-# improving, while the later DE runs it left room for ended in a basin already found (seeds 0, 1, 2: case 2 20.66,
-# 20.57, 20.60 on 0.8 against 20.89, 20.83, 20.82 on 0.5; case 3 4.441, 4.599, 4.919 against 4.566, 4.752, 4.919;
-# case 1 0.3726, 0.3777, 0.3774 against 0.3726, 0.3764, 0.3771; the others within 0.04 %). On 95 % it went further
-# still on case 3 (4.438 and 4.513 on seeds 0 and 1) and on a case not used to choose it (PD + gravity, trajectory 1,
-# T 0.5 s, Δ 0.01 s, d 2, I: 14.886 and 14.895 against 14.887 and 14.905 on 0.8, 14.962 and 15.042 on 0.5), the
-# other searches the same: where a polish ends converged the later runs keep the budget it leaves.
+# improving, while the later DE runs it left room for ended in a basin already found. On 95 %, seeds 0, 1, 2: case 2
+# 20.66, 20.57, 20.60 against 20.89, 20.83, 20.82; case 3 4.438, 4.513, 4.919 against 4.566, 4.752, 4.919; case 1
+# 0.3726, 0.3777, 0.3774 against 0.3726, 0.3764, 0.3771; the others within 0.04 %; on a case not used to choose it (PD
+# + gravity, trajectory 1, T 0.5 s, Δ 0.01 s, d 2, I) 14.886, 14.895 against 14.962, 15.042 (seeds 0, 1). Where a
+# polish ends converged, the later runs keep the budget it leaves.
 POLISH_SIGMA = 0.1
 POLISH_SHARE = 0.95
 # The wide CMA-ES runs: σ0 in log gain (a factor e^2 in every gain, so they reach basins far off the ω rules), and
