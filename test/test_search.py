@@ -219,28 +219,6 @@ def test_runs_side_by_side_find_what_each_finds_alone_in_fewer_batches():
     assert together.calls < calls
 
 
-def test_a_de_runs_polish_told_to_wait_starts_once_the_other_run_ended_and_finds_what_it_finds_alone():
-    import threading
-    alone = search._run_alone(bowl := _Bowl(100_000), _bowl_run(bowl, 'evolution'))
-    together, ended, ended_at = _Bowl(100_000), threading.Event(), []
-
-    def slow_run(allowance):  # one point a batch, far longer than the DE run's generations
-        for step in range(400):
-            yield from allowance.evaluate(np.full((1, 4), 1.0 / (step + 1)))
-        ended_at.append(together.calls)
-        ended.set()
-
-    evolution = search._evolution(together, (np.full(4, -2.0), np.full(4, 2.0)), 5, np.random.default_rng(7), 'DE',
-                                  polish_after=ended)
-    found = search._side_by_side(together, [evolution, slow_run(search._Allowance(together))])
-    np.testing.assert_equal(found[0], alone)
-    sizes = [len(points) for points in together.points[1:]]
-    members = search._members(5, 4)
-    assert sizes[:ended_at[0]].count(members + 1) == alone[1] + 1  # DE's generations ran beside the slow run
-    assert max(sizes[:ended_at[0]]) == members + 1 and min(sizes[ended_at[0]:]) >= search.LOCAL_POPSIZE
-    assert len(sizes) > ended_at[0]  # then its polish
-
-
 def test_a_de_run_in_its_thread_is_scipys_own_and_leaves_no_thread():
     import threading
 

@@ -589,8 +589,7 @@ def _side_by_side(objective: _Objective, runs: list) -> list:
     Nelder-Mead simplices, the local CMA-ES polishes) fill the engine's SIMD lanes and threads beside a DE
     population instead of each paying for a batch call of its own. A run's episodes are those of its batch of one
     (each member of a batch is simulated alone), so each run finds what it would alone. The runs are served in
-    their order: one whose points do not fit in the budget the runs before it left is ended (_BudgetEnded). A run
-    that waits for another (see _wait) asks for no points; a round in which every run waits calls nothing.
+    their order: one whose points do not fit in the budget the runs before it left is ended (_BudgetEnded).
     """
     results: list = [None] * len(runs)
     asked: list[np.ndarray | None] = [None] * len(runs)
@@ -616,8 +615,7 @@ def _side_by_side(objective: _Objective, runs: list) -> list:
                     advance(number, ended=True)
             if not batch:
                 continue
-            points = np.concatenate([asked[number] for number in batch])
-            values = objective(points) if len(points) else np.empty(0)
+            values = objective(np.concatenate([asked[number] for number in batch]))
             ends = np.cumsum([len(asked[number]) for number in batch])
             for number, start, end in zip(batch, np.concatenate([[0], ends[:-1]]), ends):
                 advance(number, values[start:end])
@@ -625,12 +623,6 @@ def _side_by_side(objective: _Objective, runs: list) -> list:
         for run in runs:
             run.close()
     return results
-
-
-def _wait(ready: threading.Event, dimension: int):
-    """A run's pause (see _side_by_side): no points asked until `ready` is set by a run beside it."""
-    while not ready.is_set():
-        yield np.empty((0, dimension))
 
 
 def _run_alone(objective: _Objective, run):
@@ -671,12 +663,11 @@ def _evolution_room(objective: _Objective, popsize: int, dimension: int) -> bool
 
 def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsize: int, rng, name: str,
                x0: np.ndarray | None = None, known: tuple[np.ndarray, np.ndarray] | None = None,
-               stall: float | None = None, polish_after: threading.Event | None = None):
+               stall: float | None = None):
     """One DE run over `box` from `rng`'s draws (with `x0` among its first members, if given) on at most DE_SHARE of
     the budget left, polished (see _polish, with `stall`) by local CMA-ES runs from the FINALISTS best distinct points
-    among its own and the `known` ones (points, values), once `polish_after` is set if given. A run (see
-    _side_by_side) that returns (its Restart, its generations), or None if the budget has no room for two of its
-    generations.
+    among its own and the `known` ones (points, values). A run (see _side_by_side) that returns (its Restart, its
+    generations), or None if the budget has no room for two of its generations.
 
     DE (scipy's: best1bin, Latin hypercube initialisation) evaluates its whole population (popsize × 2n members)
     as one batch per generation. The indices sum |e| and |P - P^nom| over the samples, so they have a kink
@@ -734,8 +725,6 @@ def _evolution(objective: _Objective, box: tuple[np.ndarray, np.ndarray], popsiz
         stopped_by, ran = ('tol',) if request.success else ('generations',), int(request.nit)
     else:
         stopped_by, ran = ('budget',), max(0, asked - 1)
-    if polish_after is not None:
-        yield from _wait(polish_after, len(low))
     polish = _Allowance(objective)
     polished, _ = yield from _polish(polish, *allowance.history(known), rng, stall=stall)
     return Restart(name, members, allowance.episodes + polish.episodes, min(best, polished), stopped_by), ran
@@ -801,12 +790,11 @@ def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name
     return Restart(name, popsize, allowance.episodes, best, stopped_by)
 
 
-def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rng, stall: float | None,
-               ended: threading.Event):
+def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rng, stall: float | None):
     """Nelder-Mead from the best `starts` (their `values` known) that START_SHARE of the budget left has room for,
-    each an independent run (the others keep their start's index), then (`ended` set) the CMA-ES polish of their best
-    distinct ends on at most POLISH_SHARE of the budget then left, with `rng`'s draws (a run only if that has room for
-    a population). A run (see _side_by_side) that returns their Restarts."""
+    each an independent run (the others keep their start's index), then the CMA-ES polish of their best distinct ends
+    on at most POLISH_SHARE of the budget then left, with `rng`'s draws (a run only if that has room for a population).
+    A run (see _side_by_side) that returns their Restarts."""
     phase = _Allowance(objective, int(START_SHARE * objective.remaining))
     taken = np.sort(np.argsort(values, kind='stable')[:phase.remaining // (starts.shape[1] + 1)])
     bests, converged, episodes = values.copy(), np.zeros(len(starts), dtype=bool), np.zeros(len(starts), dtype=int)
@@ -817,7 +805,6 @@ def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rn
     runs = [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
                     _finite(bests[number]), ('converged',) if converged[number] else ('budget',))
             for number in range(len(starts))]
-    ended.set()
     if len(taken):
         polish = _Allowance(objective, int(POLISH_SHARE * objective.remaining))
         best, stopped_by = yield from _polish(polish, *phase.history(), rng, POLISH_SIGMA, stall)
@@ -835,29 +822,25 @@ def _global(objective: _Objective, own_starts: np.ndarray, other_starts: np.ndar
 
     The first DE run (over the box of the law's own starts, the best of them among its members, its draws seeded
     by `seed`, on DE_SHARE of the budget) is the strongest single run measured on the paper's cases; the other law's
-    starts join the Nelder-Mead. The first DE run's polish waits for the simplices to end: beside them (one point a
-    start per batch, for hundreds of batches) it took the budget that the polish of their ends, on rough landscapes
-    the run that finds the deepest basins, then lacked. Each start's Nelder-Mead is one independent run; so is the
-    polish of their ends (with draws of its own), each DE run with its polish and each wide CMA-ES run, the later
-    ones each from their own draws (seeded by `seed` and their number). The CMA-ES runs start from the best start
-    with WIDE_SIGMA and double their population run after run (IPOP-CMA-ES). On searches of STALL_GAINS gains or more
-    every polish stops once it creeps, and the search ends with a final polish of its best point (drawing on after
-    the first DE run's polish), its result in the certificate's final_polish. Returns the runs, DE's generations in
-    all, and the certificate.
+    starts join the Nelder-Mead. Each start's Nelder-Mead is one independent run; so is the polish of their ends
+    (with draws of its own), each DE run with its polish and each wide CMA-ES run, the later ones each from their own
+    draws (seeded by `seed` and their number). The CMA-ES runs start from the best start with WIDE_SIGMA and double
+    their population run after run (IPOP-CMA-ES). On searches of STALL_GAINS gains or more every polish stops once it
+    creeps, and the search ends with a final polish of its best point (drawing on after the first DE run's polish),
+    its result in the certificate's final_polish. Returns the runs, DE's generations in all, and the certificate.
     """
     budget = objective.budget * len(objective.scenarios)
     starts = np.vstack([own_starts, other_starts])
     values = objective(starts)
     centre = starts[int(np.argmin(values))]
     first_draws = np.random.default_rng(seed)  # the first DE run's, then its polish's, then the final polish's
-    simplices_ended = threading.Event()
     stall = POLISH_STALL if starts.shape[1] >= STALL_GAINS else None
     cma_popsize = 4 + int(3 * np.log(starts.shape[1]))  # cma's default
     best_own = own_starts[int(np.argmin(values[:len(own_starts)]))]
     first = [_evolution(objective, search_box(own_starts), popsize, first_draws,
                         'differential evolution 1, from the best start', x0=best_own, known=(starts, values),
-                        stall=stall, polish_after=simplices_ended),
-             _simplices(objective, starts, values, np.random.default_rng([seed, 0, 1]), stall, simplices_ended)]
+                        stall=stall),
+             _simplices(objective, starts, values, np.random.default_rng([seed, 0, 1]), stall)]
     # The first wide CMA-ES run joins them when DE has room (it would come next, and most searches that converge do
     # so after it); its draws are those it would have after them.
     if _evolution_room(objective, popsize, starts.shape[1]):
