@@ -147,6 +147,10 @@ class _Bowl:
     def history_points(self, since=0):
         return np.concatenate(self.points[since:]), np.concatenate(self.values[since:])
 
+    @property
+    def best_value(self):
+        return min(float(values.min()) for values in self.values)
+
 
 def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to_cmas_end():
     stalled, full = _Bowl(100_000), _Bowl(100_000)
@@ -163,6 +167,53 @@ def test_a_polish_given_a_stall_stops_once_its_best_creeps_and_otherwise_runs_to
     assert best == bests[-1] and bests[-1 - search.STALL_CALLS] - best <= search.POLISH_STALL * best
     assert all(bests[call - search.STALL_CALLS] - bests[call] > search.POLISH_STALL * bests[call]
                for call in range(search.STALL_CALLS, len(bests) - 1))
+
+
+class _LedBowl(_Bowl):
+    """The bowl in a search whose best so far, found by another run, is `lead`."""
+
+    def __init__(self, budget: int, lead: float) -> None:
+        super().__init__(budget)
+        self.lead = lead
+
+    @property
+    def best_value(self):
+        return min(self.lead, super().best_value)
+
+
+def test_a_polish_that_cannot_reach_the_searchs_best_at_its_pace_stops_behind_and_one_that_leads_goes_on():
+    def polish(bowl):
+        run = search._polish(search._Allowance(bowl), *bowl.history_points(), np.random.default_rng(0), 0.1)
+        return search._run_alone(bowl, run)
+
+    # The bowl's floor is 1: a run elsewhere at 0.5 cannot be reached, one at 1.005 is within SAME_BASIN of it.
+    behind, within, alone = _LedBowl(100_000, 0.5), _LedBowl(100_000, 1.005), _Bowl(100_000)
+    best, stopped_by = polish(behind)
+    assert stopped_by == ('behind',) and polish(within)[1] == ('converged',) and polish(alone)[1] == ('converged',)
+    assert search.STALL_CALLS < behind.calls < alone.calls == within.calls
+    # It stopped at the first call from which, at the pace of its last STALL_CALLS calls, the budget left could not
+    # bring its best down to the lead.
+    bests = np.minimum.accumulate([values.min() for values in behind.values[1:]])
+    spent = np.cumsum([len(points) for points in behind.points[1:]])
+
+    def out_of_reach(call):
+        gained = bests[call - search.STALL_CALLS] - bests[call]
+        used = spent[call] - spent[call - search.STALL_CALLS]
+        return gained <= 0 or (bests[call] - 0.5) / gained * used > 100_000 - spent[call]
+
+    assert best == bests[-1] and out_of_reach(len(bests) - 1)
+    assert not any(out_of_reach(call) for call in range(search.STALL_CALLS, len(bests) - 1))
+
+
+def test_a_polish_from_the_searchs_best_point_is_not_behind_while_its_own_points_lie_above_it():
+    bowl = _Bowl(100_000)
+    bowl.points, bowl.values = [np.zeros((1, 4)), np.full((1, 4), 0.3)], [np.array([1.0]), np.array([1.36])]
+    allowance = search._Allowance(bowl)
+    # Its own best gained nothing, but it started from the best point: it leads.
+    assert not search._behind(allowance, 1.0, 1.2, 0.0, 320)
+    assert search._behind(allowance, 1.2, 1.2, 0.0, 320)
+    assert search._behind(allowance, 1.2, np.inf, np.nan, 320)  # its points all diverged
+    assert not search._behind(allowance, 1.2, 1.2, 0.1, 320)  # 0.2 / 0.1 x 320 points fit in the budget left
 
 
 def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_point_outside_the_agreement():
