@@ -205,6 +205,39 @@ def test_a_polish_that_cannot_reach_the_searchs_best_at_its_pace_stops_behind_an
     assert not any(out_of_reach(call) for call in range(search.STALL_CALLS, len(bests) - 1))
 
 
+class _TwoBowls(_Bowl):
+    """Two basins: 1 + |x|^2 about the origin, 1.5 + |x - 2|^2 about (2, 2, 2, 2); starts in each."""
+
+    def __init__(self, budget: int) -> None:
+        super().__init__(budget)
+        self.points, self.values = [np.array([[0.3, 0.0, 0.0, 0.0], [2.3, 2.0, 2.0, 2.0]])], [np.array([1.09, 1.59])]
+
+    def __call__(self, points):
+        points = np.asarray(points)
+        values = np.minimum(1.0 + np.sum(points ** 2, axis=1), 1.5 + np.sum((points - 2.0) ** 2, axis=1))
+        self.remaining -= len(points)
+        self.calls += 1
+        self.points.append(points)
+        self.values.append(values)
+        return values
+
+
+def test_a_polish_that_drops_its_runs_behind_ends_the_run_in_the_shallower_basin_and_finds_the_same_best():
+    found = {}
+    for drop in (False, True):
+        bowls = _TwoBowls(100_000)
+        run = search._polish(search._Allowance(bowls), *bowls.history_points(), np.random.default_rng(3), 0.1,
+                             drop_runs_behind=drop)
+        best, stopped_by = search._run_alone(bowls, run)
+        in_shallower = sum(int(np.sum(np.all(np.abs(points - 2.0) < 1.0, axis=1))) for points in bowls.points[1:])
+        found[drop] = best, stopped_by, in_shallower, bowls.calls
+    # Both reach the deeper floor (the runs share one generator, so the draws differ once a run has ended).
+    assert found[True][1] == found[False][1] == ('converged',)
+    assert found[True][0] == pytest.approx(1.0, abs=1e-6) and found[False][0] == pytest.approx(1.0, abs=1e-6)
+    # The run in the basin 50 % above the other's floor ended once it could not get there, long before cma's end.
+    assert search.STALL_CALLS * search.LOCAL_POPSIZE < found[True][2] < found[False][2]
+
+
 def test_a_polish_from_the_searchs_best_point_is_not_behind_while_its_own_points_lie_above_it():
     bowl = _Bowl(100_000)
     bowl.points, bowl.values = [np.zeros((1, 4)), np.full((1, 4), 0.3)], [np.array([1.0]), np.array([1.36])]
