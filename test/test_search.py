@@ -238,6 +238,15 @@ def test_a_polish_that_drops_its_runs_behind_ends_the_run_in_the_shallower_basin
     assert search.STALL_CALLS * search.LOCAL_POPSIZE < found[True][2] < found[False][2]
 
 
+def test_a_polish_whose_every_run_fell_behind_says_so():
+    bowls = _LedBowl(100_000, 0.5)  # another run's best, below both basins' floors
+    bowls.points, bowls.values = [np.array([[0.3, 0.0, 0.0, 0.0], [2.3, 2.0, 2.0, 2.0]])], [np.array([1.09, 1.09])]
+    run = search._polish(search._Allowance(bowls), *bowls.history_points(), np.random.default_rng(3), 0.1,
+                         drop_runs_behind=True)
+    best, stopped_by = search._run_alone(bowls, run)
+    assert stopped_by == ('behind',) and best > 1.0 and bowls.remaining > 0
+
+
 def test_a_polish_from_the_searchs_best_point_is_not_behind_while_its_own_points_lie_above_it():
     bowl = _Bowl(100_000)
     bowl.points, bowl.values = [np.zeros((1, 4)), np.full((1, 4), 0.3)], [np.array([1.0]), np.array([1.36])]

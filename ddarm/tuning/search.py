@@ -763,7 +763,7 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
     runs = [(cma.CMAEvolutionStrategy(points[member], sigma, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL, bounded=False)),
              float(values[member]), [])
             for member in chosen[:max(1, allowance.remaining // LOCAL_POPSIZE)]]
-    best, bests, spent = np.inf, [], []
+    best, bests, spent, dropped = np.inf, [], [], 0
     while runs:
         while runs and LOCAL_POPSIZE * len(runs) > allowance.remaining:
             runs.pop()
@@ -790,11 +790,14 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
             if drop_runs_behind and len(run_bests) > STALL_CALLS and _behind(
                     allowance, min(run_bests[-1], run_start), run_bests[-1],
                     run_bests[-1 - STALL_CALLS] - run_bests[-1], STALL_CALLS * LOCAL_POPSIZE):
+                dropped += 1
                 continue
             if not run.stop():
                 going.append((run, run_start, run_bests))
         runs = going
-    return best, ('budget',) if allowance.remaining < LOCAL_POPSIZE else ('converged',)
+    if allowance.remaining < LOCAL_POPSIZE:
+        return best, ('budget',)
+    return best, ('behind',) if dropped == len(chosen) else ('converged',)
 
 
 def _behind(allowance: _Allowance, reached: float, best: float, gained: float, spent: int) -> bool:
