@@ -97,8 +97,8 @@ STALL_CALLS = 20
 # On every search a polish whose best, and the best of the points it started from, lie more than SAME_BASIN above the
 # search's best so far stops once, at the pace of its last STALL_CALLS batch calls, the budget left could not bring
 # it down to that best: it falls behind. Its budget goes to the later runs. Measured on the 18 development searches
-# of docs/performance.md (mean gap 2.60 % -> 1.98 %, none higher): on case 3 seed 2 the first DE run's polish crept on
-# for 85,000 episodes to 5.11, 4 % above a wide CMA-ES run's 4.92, and left the Nelder-Mead ends' polish 2,944;
+# of docs/performance.md (mean gap 2.60 % -> 1.98 %, none higher): on case 3 seed 2 the first DE run crept on with its
+# polish for 85,000 episodes to 5.11, 4 % above a wide CMA-ES run's 4.92, and left the Nelder-Mead ends' polish 2,944;
 # stopped, it left that polish 49,504, which reached 4.467. On case 4 the ends' polish crept for 42,000 episodes to
 # 3.58 where the DE run had found 1.82; stopped at 4,608, it left them to a second DE run. The pace is that of its own
 # points, not of the points it started from, which a polish from a narrow valley's floor takes calls to get below.
