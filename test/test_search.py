@@ -136,8 +136,12 @@ class _Bowl:
     def __init__(self, budget: int) -> None:
         self.remaining, self.calls, self.points, self.values = budget, 0, [np.full((1, 4), 0.3)], [np.array([1.36])]
 
+    @staticmethod
+    def value(points):
+        return 1.0 + np.sum(points ** 2, axis=1)
+
     def __call__(self, points):
-        values = 1.0 + np.sum(np.asarray(points) ** 2, axis=1)
+        values = self.value(np.asarray(points))
         self.remaining -= len(points)
         self.calls += 1
         self.points.append(np.asarray(points))
@@ -212,14 +216,9 @@ class _TwoBowls(_Bowl):
         super().__init__(budget)
         self.points, self.values = [np.array([[0.3, 0.0, 0.0, 0.0], [2.3, 2.0, 2.0, 2.0]])], [np.array([1.09, 1.59])]
 
-    def __call__(self, points):
-        points = np.asarray(points)
-        values = np.minimum(1.0 + np.sum(points ** 2, axis=1), 1.5 + np.sum((points - 2.0) ** 2, axis=1))
-        self.remaining -= len(points)
-        self.calls += 1
-        self.points.append(points)
-        self.values.append(values)
-        return values
+    @staticmethod
+    def value(points):
+        return np.minimum(1.0 + np.sum(points ** 2, axis=1), 1.5 + np.sum((points - 2.0) ** 2, axis=1))
 
 
 def test_a_polish_that_drops_its_runs_behind_ends_the_run_in_the_shallower_basin_and_finds_the_same_best():
@@ -251,11 +250,13 @@ def test_a_polish_from_the_searchs_best_point_is_not_behind_while_its_own_points
     bowl = _Bowl(100_000)
     bowl.points, bowl.values = [np.zeros((1, 4)), np.full((1, 4), 0.3)], [np.array([1.0]), np.array([1.36])]
     allowance = search._Allowance(bowl)
+    calls = search.STALL_CALLS + 1
     # Its own best gained nothing, but it started from the best point: it leads.
-    assert not search._behind(allowance, 1.0, 1.2, 0.0, 320)
-    assert search._behind(allowance, 1.2, 1.2, 0.0, 320)
-    assert search._behind(allowance, 1.2, np.inf, np.nan, 320)  # its points all diverged
-    assert not search._behind(allowance, 1.2, 1.2, 0.1, 320)  # 0.2 / 0.1 x 320 points fit in the budget left
+    assert not search._behind(allowance, [1.2] * calls, 1.0, 320)
+    assert search._behind(allowance, [1.2] * calls, 1.36, 320)
+    assert search._behind(allowance, [np.inf] * calls, 1.2, 320)  # its points all diverged
+    assert not search._behind(allowance, [1.3] * (calls - 1) + [1.2], 1.36, 320)  # 0.2 / 0.1 x 320 points fit
+    assert not search._behind(allowance, [1.2] * (calls - 1), 1.36, 320)  # too few calls to tell its pace
 
 
 def test_a_search_of_many_gains_ends_with_a_polish_of_its_best_point_outside_the_agreement():

@@ -763,7 +763,7 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
     runs = [(cma.CMAEvolutionStrategy(points[member], sigma, cma_options(rng, LOCAL_POPSIZE, CMA_XTOL, bounded=False)),
              float(values[member]), [])
             for member in chosen[:max(1, allowance.remaining // LOCAL_POPSIZE)]]
-    best, bests, spent, dropped = np.inf, [], [], 0
+    best, bests, sizes, dropped, converged = np.inf, [], [], False, False
     while runs:
         while runs and LOCAL_POPSIZE * len(runs) > allowance.remaining:
             runs.pop()
@@ -776,9 +776,8 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
             return best, ('budget',)
         best = min(best, _finite(float(values.min())))
         bests.append(best)
-        spent.append(allowance.spent)
-        if len(bests) > STALL_CALLS and _behind(allowance, min(best, start), best, bests[-1 - STALL_CALLS] - best,
-                                                spent[-1] - spent[-1 - STALL_CALLS]):
+        sizes.append(len(values))
+        if _behind(allowance, bests, start, sum(sizes[-STALL_CALLS:])):
             return best, ('behind',)
         if (stall is not None and len(bests) > STALL_CALLS and np.isfinite(best)
                 and bests[-1 - STALL_CALLS] - best <= stall * abs(best)):
@@ -787,27 +786,30 @@ def _polish(allowance: _Allowance, points: np.ndarray, values: np.ndarray, rng, 
         for (run, run_start, run_bests), population, run_values in zip(runs, populations, np.split(values, len(runs))):
             run.tell(population, run_values.tolist())
             run_bests.append(min(run_bests[-1] if run_bests else np.inf, _finite(float(run_values.min()))))
-            if drop_runs_behind and len(run_bests) > STALL_CALLS and _behind(
-                    allowance, min(run_bests[-1], run_start), run_bests[-1],
-                    run_bests[-1 - STALL_CALLS] - run_bests[-1], STALL_CALLS * LOCAL_POPSIZE):
-                dropped += 1
-                continue
-            if not run.stop():
+            if drop_runs_behind and _behind(allowance, run_bests, run_start, STALL_CALLS * LOCAL_POPSIZE):
+                dropped = True
+            elif run.stop():
+                converged = True
+            else:
                 going.append((run, run_start, run_bests))
         runs = going
     if allowance.remaining < LOCAL_POPSIZE:
         return best, ('budget',)
-    return best, ('behind',) if dropped == len(chosen) else ('converged',)
+    return best, ('behind',) if dropped and not converged else ('converged',)
 
 
-def _behind(allowance: _Allowance, reached: float, best: float, gained: float, spent: int) -> bool:
-    """Whether a polish that `reached` (its best and its starts') and whose own best gained `gained` in its last
-    `spent` points is more than SAME_BASIN above the search's best and could not get there, at that pace, on the
-    budget left."""
-    lead = allowance.objective.best_value
+def _behind(allowance: _Allowance, bests: list[float], start: float, points: int) -> bool:
+    """Whether a polish, or one of its runs, whose best after each of its batch calls was `bests`, which started from
+    points whose best was `start`, and which evaluated `points` points in its last STALL_CALLS calls, has fallen
+    behind: more than SAME_BASIN above the search's best, and unable to get there at that pace on the budget left.
+    Not before it has made STALL_CALLS calls."""
+    if len(bests) <= STALL_CALLS:
+        return False
+    best, gained, lead = bests[-1], bests[-1 - STALL_CALLS] - bests[-1], allowance.objective.best_value
+    reached = min(best, start)
     if not (np.isfinite(reached) and lead < DIVERGED_PENALTY and reached > (1.0 + SAME_BASIN) * lead):
         return False
-    return not (np.isfinite(best) and gained > 0) or (best - lead) / gained * spent > allowance.remaining
+    return not (np.isfinite(best) and gained > 0) or (best - lead) / gained * points > allowance.remaining
 
 
 def _wide_cma(objective: _Objective, centre: np.ndarray, popsize: int, rng, name: str):
