@@ -1,5 +1,7 @@
 """The gain searches (spec §9): they improve on their starts, are deterministic, and never prefer a divergence."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -101,6 +103,7 @@ def test_the_global_search_certifies_its_best_by_independent_runs_and_stops_once
     assert certificate.summary().startswith('converged: ')
     as_json = certificate.to_dict()
     assert as_json['converged'] is True and as_json['runs_within_0_5_percent'] == agreeing
+    assert as_json['rule_start_runs_within_0_5_percent'] >= 1 and as_json['global_runs_within_0_5_percent'] >= 1
     # 6 gains: every polish runs to cma's end, and there is no final one.
     assert certificate.final_polish is None and as_json['final_polish'] is None
     assert sum(basin['runs'] for basin in as_json['basins']) == sum(np.isfinite(r.index) for r in result.restarts)
@@ -288,6 +291,32 @@ def test_the_report_names_the_final_polish_beside_the_runs_it_is_not_one_of(poli
     lines = certificate_section(certificate.to_dict(), 'I')
     assert line in lines and not any('final CMA-ES polish' in text for text in lines)  # not a row of the runs
     assert certificate.within(0.005) == 2 and certificate.best == 1.0  # the polish is not a run
+
+
+@pytest.mark.parametrize('rule_start_best, verdict', [
+    (1.004, 'converged: '),
+    (1.006, 'not converged: '),  # only the global runs agree
+])
+def test_runs_of_one_family_alone_do_not_certify_a_basin(rule_start_best, verdict):
+    # Four global runs agree; the Nelder-Mead runs and the polish of their ends reach 1.004 or 1.006 of the best.
+    global_runs = tuple(search.Restart(f'global {number}', 9, 1000, value, ('tolx',))
+                        for number, value in enumerate([1.0, 1.001, 1.002, 1.003]))
+    from_rule_starts = tuple(search.Restart(f'Nelder-Mead {number}', 1, 100, value, ('converged',), True)
+                             for number, value in enumerate([1.3, 1.5, rule_start_best]))
+    certificate = search.Certificate(from_rule_starts + global_runs, 4, 100_000, 4300)
+    assert certificate.within(0.005) == 4 + (rule_start_best < 1.005) and certificate.settled
+    assert certificate.summary().startswith(verdict) and certificate.converged == (verdict == 'converged: ')
+    as_json = certificate.to_dict()
+    assert as_json['global_runs_within_0_5_percent'] == 4
+    assert as_json['rule_start_runs_within_0_5_percent'] == (rule_start_best < 1.005)
+    if not certificate.converged:
+        assert '; no run from the ω-rule starts within 0.5 %' in certificate.summary()
+    # The same with the families' roles swapped.
+    swapped = search.Certificate(tuple(replace(run, from_rule_starts=not run.from_rule_starts)
+                                       for run in certificate.runs), 3, 100_000, 4300)
+    assert swapped.converged == certificate.converged
+    if not swapped.converged:
+        assert '; no global run within 0.5 %' in swapped.summary()
 
 
 def _bowl_run(bowl, kind):

@@ -119,8 +119,9 @@ def certificate_section(certificate: dict, index: str) -> list[str]:
              ('**Converged**: ' if certificate['converged'] else '**Not converged**: ')
              + markdown_text(certificate['summary']) + '.', '',
              f"Converged means: at least {certificate['required_runs']} independent runs (and a third of them) within "
-             f"0.5 % of the best, after at least {certificate['required_global_runs']} global runs (differential "
-             'evolution, wide CMA-ES), and the runs since the best was first reached spent as many episodes as those '
+             '0.5 % of the best, one of them from the ω-rule starts (Nelder-Mead, the polish of its ends) and one a '
+             f"global run (differential evolution, wide CMA-ES), after at least {certificate['required_global_runs']} "
+             'global runs, and the runs since the best was first reached spent as many episodes as those '
              f"before. {certificate['episodes']} of at most {certificate['budget']} episodes spent.", '',
              _row(['run', f'best {index}', 'episodes']), _row(['---'] * 3)]
     lines += [_row([markdown_text(run['run']), _index_cell(run['index']), str(run['episodes'])])
