@@ -253,10 +253,10 @@ class Certificate:
             return (f'converged: {runs}, {self.within(AGREEMENT)} within 0.5 % of the best; '
                     f'{len(self.basins())} basins found')
         unsettled = '' if self.settled else '; the runs since the best was first reached spent less than those before'
-        family = next((f'; no {name} within 0.5 %' for name, members in (
-            ('run from the ω-rule starts', self.within(AGREEMENT, from_rule_starts=True)),
-            ('global run', self.within(AGREEMENT, from_rule_starts=False))) if not members and self.within(AGREEMENT)),
-            '')
+        # The best run is within AGREEMENT of itself, so at most one family can be missing.
+        family = ''.join(f'; no {name} within 0.5 %' for name, from_rule_starts in (
+            ('run from the ω-rule starts', True), ('global run', False))
+            if self.within(AGREEMENT) and not self.within(AGREEMENT, from_rule_starts))
         return (f'not converged: {runs} ({self.within(AGREEMENT)} within 0.5 %, {self.required_runs} needed, after '
                 f'{self.global_runs} of at least {MIN_GLOBAL_RUNS} global runs{family}{unsettled}); '
                 f'try --budget {2 * max(self.budget, self.episodes)}')
@@ -871,14 +871,15 @@ def _simplices(objective: _Objective, starts: np.ndarray, values: np.ndarray, rn
         bests[taken] = np.minimum(values[taken], found)
         episodes[taken] = phase.episodes // len(taken)
     runs = [Restart(f'Nelder-Mead from ω-rule start {number + 1} ({values[number]:.6g})', 1, int(episodes[number]),
-                    _finite(bests[number]), ('converged',) if converged[number] else ('budget',), True)
+                    _finite(bests[number]), ('converged',) if converged[number] else ('budget',),
+                    from_rule_starts=True)
             for number in range(len(starts))]
     if len(taken):
         polish = _Allowance(objective, int(POLISH_SHARE * objective.remaining))
         best, stopped_by = yield from _polish(polish, *phase.history(), rng, POLISH_SIGMA, stall)
         if polish.episodes:
             runs.append(Restart('CMA-ES polish of the Nelder-Mead runs', LOCAL_POPSIZE, polish.episodes, best,
-                                stopped_by, True))
+                                stopped_by, from_rule_starts=True))
     return runs
 
 
