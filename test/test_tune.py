@@ -96,6 +96,10 @@ def test_a_global_search_that_did_not_converge_says_so_beside_its_gains(capsys, 
     assert report['converged'] is False and report['certificate']['converged'] is False
     assert report['certificate']['summary'] in verdict[0]
     assert len(report['certificate']['runs']) == len(report['restarts'])
+    # Each run says its family: the Nelder-Mead runs from the ω-rule starts, or a global run.
+    assert all(restart['from_rule_starts'] == restart['start'].startswith(('Nelder-Mead', 'CMA-ES polish of the '
+                                                                           'Nelder-Mead'))
+               for restart in report['restarts'])
     assert report['episodes'] <= 300
     assert '**Not converged**' in (tmp_path / 'small' / 'report.md').read_text()
     assert 'the search did not converge' in (tmp_path / 'gains.yaml').read_text()
