@@ -25,19 +25,22 @@ from ddarm.episodes.spec import check_episode
 from ddarm.physics.arm import config_file
 
 
-class LoopTimer:
-    """engine._run_chunks with the seconds spent in it added up."""
+class Timed:
+    """A function with the seconds spent in it added up (here engine._run_chunks; bench/search_rate.py's the batch
+    calls)."""
 
-    def __init__(self, loop) -> None:
-        self.loop, self.seconds = loop, 0.0
+    def __init__(self, function) -> None:
+        self.function, self.seconds = function, 0.0
 
-    def __call__(self, *arguments):
+    def __call__(self, *arguments, **keywords):
         started = time.perf_counter()
-        self.loop(*arguments)
-        self.seconds += time.perf_counter() - started
+        try:
+            return self.function(*arguments, **keywords)
+        finally:
+            self.seconds += time.perf_counter() - started
 
 
-def per_call(call, calls: int, timer: LoopTimer) -> dict:
+def per_call(call, calls: int, timer: Timed) -> dict:
     """Median wall time of `calls` calls and the median overhead (wall minus the compiled loop), in ms."""
     walls, overheads = [], []
     for _ in range(calls):
@@ -55,7 +58,7 @@ def main() -> None:
     parser.add_argument('--calls', type=int, default=300)
     parser.add_argument('--batch', type=int, default=8)
     options = parser.parse_args()
-    timer = LoopTimer(engine._run_chunks)
+    timer = Timed(engine._run_chunks)
     engine._run_chunks = timer
     urdf, motion = (str(config_file(*parts)) for parts in MANY_JOINT_ARM)
     # One thread: the loop time of a call on two would be the sum of both threads' (a Panda batch of 8 shares out).

@@ -28,32 +28,10 @@ from ddarm.episodes.engine import BatchRunner, warm_up
 from ddarm.episodes.spec import EpisodeSpec
 from ddarm.tuning.search import omega_starts, search_gains
 
+from batch_overhead import Timed
+
 CASES = (('computed_torque', 'I1'), ('pd_gravity', 'I'))
 DEFAULT_BUDGET = 100_000  # ddarm tune's
-
-
-class EngineClock:
-    """The wall time spent in the engine's batch calls while it is installed (it wraps BatchRunner.__call__)."""
-
-    def __init__(self) -> None:
-        self.seconds = 0.0
-        self._call = BatchRunner.__call__
-
-    def __enter__(self) -> 'EngineClock':
-        clock, call = self, self._call
-
-        def timed(runner, *arguments, **keywords):
-            started = time.perf_counter()
-            try:
-                return call(runner, *arguments, **keywords)
-            finally:
-                clock.seconds += time.perf_counter() - started
-
-        BatchRunner.__call__ = timed
-        return self
-
-    def __exit__(self, *exception) -> None:
-        BatchRunner.__call__ = self._call
 
 
 def main() -> int:
@@ -61,21 +39,23 @@ def main() -> int:
     parser.add_argument('--rounds', type=int, default=3)
     options = parser.parse_args()
     warm_up()
+    engine = Timed(BatchRunner.__call__)
+    BatchRunner.__call__ = lambda runner, *arguments, **keywords: engine(runner, *arguments, **keywords)
     for controller, index in CASES:
         template = EpisodeSpec(controller=controller)
         kp, kv = omega_starts(template, SEARCH_START_OMEGAS)
         rows = []
         for _ in range(options.rounds):
-            with EngineClock() as engine:
-                started = time.perf_counter()
-                result = search_gains(template, index=index, start_kp=kp, start_kv=kv, budget=DEFAULT_BUDGET)
-                wall = time.perf_counter() - started
+            engine.seconds = 0.0
+            started = time.perf_counter()
+            result = search_gains(template, index=index, start_kp=kp, start_kv=kv, budget=DEFAULT_BUDGET)
+            wall, engine_seconds = time.perf_counter() - started, engine.seconds
             batch = batch_rates(template.with_gains(result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]
-            rows.append((wall, result.episodes / wall, batch['episodes_per_s'], engine.seconds))
-            print(f'{controller} {index}: {wall:.2f} s ({engine.seconds:.2f} s in the engine), {result.episodes} '
+            rows.append((wall, result.episodes / wall, batch['episodes_per_s'], engine_seconds))
+            print(f'{controller} {index}: {wall:.2f} s ({engine_seconds:.2f} s in the engine), {result.episodes} '
                   f'episodes in {result.batches} batch calls, {rows[-1][1]:.0f} episodes/s against a batch rate of '
                   f'{rows[-1][2]:.0f} ({rows[-1][1] / rows[-1][2]:.2f}; with no time outside the engine '
-                  f'{result.episodes / engine.seconds / rows[-1][2]:.2f}); index {result.index:.9g}, '
+                  f'{result.episodes / engine_seconds / rows[-1][2]:.2f}); index {result.index:.9g}, '
                   f'converged {result.converged}', flush=True)
         wall, rate, batch_rate, engine_seconds = np.median(np.array(rows), axis=0)
         ratio = np.median([row[1] / row[2] for row in rows])
