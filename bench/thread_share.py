@@ -4,9 +4,8 @@
 
 For each batch size B, the best of `rounds` calls of a kept BatchRunner on the paper's arm (or the Panda with
 --panda), computed torque at the ω = 15 rule gains perturbed, on one thread and on two (the engine's threshold
-lowered so that two are used whatever B), alternating call by call in one process, so the ratio holds whatever the
-machine's load. The engine's MIN_MEMBERS_PER_THREAD and _UNVECTORISED, and its sharing of the arms of HEAVY_JOINTS or
-more by vectors, come from this.
+lifted so that two are used whatever B), alternating call by call in one process, so the ratio holds whatever the
+machine's load. The engine's sharing out by SIMD vectors (`_shares`) comes from this.
 """
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ import small_batch_case
 def main() -> None:
     options = small_batch_case.options(__doc__.splitlines()[0], [6, 8, 12, 16, 24, 32, 48, 64], 9)
     template, runner = small_batch_case.compiled_runner(options.panda)
-    engine.MIN_MEMBERS_PER_THREAD = engine.MIN_MEMBERS_PER_THREAD_UNVECTORISED = 1
-    engine.HEAVY_JOINTS = engine.VECTOR_JOINTS + 1  # every unrolled arm by the first rule
+    engine._shares = lambda size, dof: size
     print(f"{'B':>4}  {'1 thread ms':>11}  {'2 threads ms':>12}  {'ratio':>6}")
     for size in options.sizes:
         kp, kv = perturbed_gains(template, size, seed=1)

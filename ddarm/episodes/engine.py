@@ -39,17 +39,16 @@ MAX_SERIES_VALUES = 25_000_000
 # Members one thread advances together (see ddarm.physics.dynamics); measured best near 32 here.
 LANES = 32
 MAX_THREADS = 256
-# A batch shares out across threads only this many members per thread or more: a smaller share costs more in
-# handing it over than it saves. Measured side by side (best of 9, one thread against two): on the paper's arm,
-# whose members run 8 to a SIMD vector, 8 members took 1.18 ms against 1.77 ms, 32 took 3.66 ms against 2.96 ms and
-# 48 5.50 ms against 3.90 ms. A member of an arm of HEAVY_JOINTS to VECTOR_JOINTS joints costs 2 (5 joints) to 4
-# times as much, and a second thread pays as soon as a batch needs a second vector, each thread's share padded to a
-# whole one (Panda, best of 9: 8 members took 6.02 ms against 6.81 ms, 9 took 8.44 against 6.63, 10 10.40 against
-# 6.95). The looped chains beyond UNROLLED_JOINTS run one member at a time (the Panda's did too, before its lanes ran
-# as vectors: 8 members 9.87 ms against 5.71 ms).
-MIN_MEMBERS_PER_THREAD = 16
+# On the arms whose members run as SIMD vectors (see VECTOR_JOINTS) a batch shares out across threads as soon as it
+# needs a second vector: each thread then runs whole vectors (its share padded, see PAD_FROM). Measured side by side
+# (bench/thread_share.py, best of 41, one thread against two, 2026-12-07): on the paper's arm 8 members took 1.16 ms
+# against 1.34 ms, 9 took 1.46 against 1.40, 12 took 2.00 against 1.35, 16 1.97 against 1.33, 24 2.73 against 2.19,
+# 32 3.55 against 2.18; on the Panda 8 members 6.02 ms against 6.81 ms, 9 8.44 against 6.63, 10 10.40 against 6.95.
+# (Until then the arms of up to 4 joints shared out only from 16 members per thread, from a run whose timings the
+# machine's load had spread.) The looped chains beyond VECTOR_JOINTS run one member at a time and share out from
+# MIN_MEMBERS_PER_THREAD_UNVECTORISED members per thread (the Panda's did too, before its lanes ran as vectors:
+# 8 members 9.87 ms against 5.71 ms).
 MIN_MEMBERS_PER_THREAD_UNVECTORISED = 4
-HEAVY_JOINTS = 5
 # On arms of up to VECTOR_JOINTS joints (those whose dynamics are unrolled, see ddarm.physics.generated) the
 # generated dynamics run VECTOR_LANES members at a time in SIMD registers and the members left over one by one, each
 # at about 2 to 3 times the cost (measured on the paper's arm: 7 members took 2.18 ms, 8 took 1.28 ms; the same on
@@ -176,6 +175,13 @@ def _run_chunks(first_chunk, chunk_stride, lanes, plant_dynamics, model_dynamics
                    episode, plant, record, series, outcome)
 
 
+def _shares(size: int, dof: int) -> int:
+    """The most threads a batch of `size` members of a `dof`-joint arm shares out over (see VECTOR_LANES)."""
+    if dof <= VECTOR_JOINTS:
+        return -(-size // VECTOR_LANES)
+    return size // MIN_MEMBERS_PER_THREAD_UNVECTORISED
+
+
 def _padded(width: int) -> int:
     """A chunk's lanes, its leftover members rounded up to a whole vector where that is cheaper."""
     left = width % VECTOR_LANES
@@ -296,13 +302,7 @@ class BatchRunner:
                              f'ask for fewer episodes or no series')
         if threads is None:
             threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
-        if dof < HEAVY_JOINTS:
-            shares = size // MIN_MEMBERS_PER_THREAD
-        elif dof <= VECTOR_JOINTS:
-            shares = -(-size // VECTOR_LANES)
-        else:
-            shares = size // MIN_MEMBERS_PER_THREAD_UNVECTORISED
-        threads = min(threads, max(1, shares))
+        threads = min(threads, max(1, _shares(size, dof)))
         # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not
         # 32 + 32 and 26.
