@@ -27,17 +27,18 @@ from ddarm.physics.arm import config_file
 
 class Timed:
     """A function with the seconds spent in it added up (here engine._run_chunks; bench/search_rate.py's the batch
-    calls)."""
+    calls), and each call's in `durations`."""
 
     def __init__(self, function) -> None:
-        self.function, self.seconds = function, 0.0
+        self.function, self.seconds, self.durations = function, 0.0, []
 
     def __call__(self, *arguments, **keywords):
         started = time.perf_counter()
         try:
             return self.function(*arguments, **keywords)
         finally:
-            self.seconds += time.perf_counter() - started
+            self.durations.append(time.perf_counter() - started)
+            self.seconds += self.durations[-1]
 
 
 def per_call(call, calls: int, timer: Timed) -> dict:

@@ -12,7 +12,9 @@ machine's load moves both rates by 20 % from one minute to the next.
 
 It also times the engine's batch calls inside the search, and prints what the search would reach if everything
 outside them (the optimisers, the scheduling) took no time: its episodes over the engine's time, against the batch
-rate. That ceiling is set by the sizes of the batches the search's runs ask for, not by Python.
+rate. That ceiling is set by the sizes of the batches the search's runs ask for, not by Python: for each case it
+also prints the engine's calls split by their batch size (B), with the episodes/s the engine ran each group at
+(summed over the rounds), beside the batch rate at B = 1000.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ from batch_overhead import Timed
 
 CASES = (('computed_torque', 'I1'), ('pd_gravity', 'I'))
 DEFAULT_BUDGET = 100_000  # ddarm tune's
+# The batch sizes the engine's calls are grouped by: one member alone, a few, one SIMD vector, two threads' vectors.
+SIZE_EDGES = (1, 2, 8, 9, 16, 32, 64, 128)
 
 
 def main() -> int:
@@ -39,17 +43,23 @@ def main() -> int:
     parser.add_argument('--rounds', type=int, default=3)
     options = parser.parse_args()
     warm_up()
-    engine = Timed(BatchRunner.__call__)
-    BatchRunner.__call__ = lambda runner, *arguments, **keywords: engine(runner, *arguments, **keywords)
+    engine, sizes = Timed(BatchRunner.__call__), []
+
+    def batch_call(runner, kp, *arguments, **keywords):
+        sizes.append(len(kp))
+        return engine(runner, kp, *arguments, **keywords)
+
+    BatchRunner.__call__ = batch_call
     for controller, index in CASES:
         template = EpisodeSpec(controller=controller)
         kp, kv = omega_starts(template, SEARCH_START_OMEGAS)
-        rows = []
+        rows, calls = [], []
         for _ in range(options.rounds):
-            engine.seconds = 0.0
+            engine.seconds, engine.durations, sizes[:] = 0.0, [], []
             started = time.perf_counter()
             result = search_gains(template, index=index, start_kp=kp, start_kv=kv, budget=DEFAULT_BUDGET)
             wall, engine_seconds = time.perf_counter() - started, engine.seconds
+            calls += zip(sizes, engine.durations)
             batch = batch_rates(template.with_gains(result.kp, result.kv), (BENCH_EPISODES,), rounds=1)[0]
             rows.append((wall, result.episodes / wall, batch['episodes_per_s'], engine_seconds))
             print(f'{controller} {index}: {wall:.2f} s ({engine_seconds:.2f} s in the engine), {result.episodes} '
@@ -63,7 +73,21 @@ def main() -> int:
         print(f'{controller} {index}, median of {len(rows)}: {wall:.2f} s ({engine_seconds:.2f} s in the engine), '
               f'{rate:.0f} episodes/s, batch {batch_rate:.0f}, ratio {ratio:.2f}, with no time outside the engine '
               f'{ceiling:.2f}')
+        print_by_size(np.array(calls), batch_rate)
     return 0
+
+
+def print_by_size(calls: np.ndarray, batch_rate: float) -> None:
+    """The engine's calls (rows of B and seconds) grouped by B: calls, episodes, seconds, episodes/s and its ratio to
+    `batch_rate`."""
+    print(f"{'B':>9} {'calls':>7} {'episodes':>9} {'seconds':>8} {'episodes/s':>11} {'of the batch rate':>18}")
+    for low, high in zip(SIZE_EDGES, SIZE_EDGES[1:] + (np.inf,)):
+        group = calls[(calls[:, 0] >= low) & (calls[:, 0] < high)]
+        if len(group):
+            episodes, seconds = group[:, 0].sum(), group[:, 1].sum()
+            sizes = f'{low}-{high - 1:.0f}' if np.isfinite(high) else f'{low}-'
+            print(f'{sizes:>9} {len(group):>7} {episodes:>9.0f} {seconds:>8.2f} {episodes / seconds:>11.0f} '
+                  f'{episodes / seconds / batch_rate:>18.2f}')
 
 
 if __name__ == '__main__':
