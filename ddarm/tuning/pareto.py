@@ -282,7 +282,7 @@ class _Scalarisation:
 def _refine(archive: _Archive, searches: int, seed: int) -> tuple[int, int]:
     """Scalarised CMA-ES searches from `searches` points spread along the archive's front, advanced together
     until all converge or the next generation would exceed the budget. Returns (searches run, converged)."""
-    import cma  # see ddarm.tuning.search._Run
+    import cma  # see ddarm.tuning.search._cma
 
     front_log = _log_indices(archive.indices)
     least_I = int(np.argmin(archive.indices.sum(axis=1)))
