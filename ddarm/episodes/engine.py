@@ -41,9 +41,10 @@ LANES = 32
 MAX_THREADS = 256
 # On the arms whose members run as SIMD vectors (see VECTOR_JOINTS) a batch shares out across threads as soon as it
 # needs a second vector: each thread then runs whole vectors (its share padded, see PAD_FROM). Measured side by side
-# (bench/thread_share.py, best of 41, one thread against two, 2026-12-07): on the paper's arm 8 members took 1.16 ms
+# (bench/thread_share.py, one thread against two, 2026-12-07): on the paper's arm (best of 41) 8 members took 1.16 ms
 # against 1.34 ms, 9 took 1.46 against 1.40, 12 took 2.00 against 1.35, 16 1.97 against 1.33, 24 2.73 against 2.19,
-# 32 3.55 against 2.18; on the Panda 8 members 6.02 ms against 6.81 ms, 9 8.44 against 6.63, 10 10.40 against 6.95.
+# 32 3.55 against 2.18; on the Panda (best of 21) 8 members 4.06 ms against 4.38 ms, 9 5.56 against 4.47, 10 6.91
+# against 4.41.
 # (Until then the arms of up to 4 joints shared out only from 16 members per thread, from a run whose timings the
 # machine's load had spread.) The looped chains beyond VECTOR_JOINTS run one member at a time and share out from
 # MIN_MEMBERS_PER_THREAD_UNVECTORISED members per thread (the Panda's did too, before its lanes ran as vectors:
