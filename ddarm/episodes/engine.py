@@ -180,7 +180,7 @@ def _shares(size: int, dof: int) -> int:
     """The most threads a batch of `size` members of a `dof`-joint arm shares out over (see VECTOR_LANES)."""
     if dof <= VECTOR_JOINTS:
         return -(-size // VECTOR_LANES)
-    return size // MIN_MEMBERS_PER_THREAD_UNVECTORISED
+    return max(1, size // MIN_MEMBERS_PER_THREAD_UNVECTORISED)
 
 
 def _padded(width: int) -> int:
@@ -303,7 +303,7 @@ class BatchRunner:
                              f'ask for fewer episodes or no series')
         if threads is None:
             threads = _default_threads if _default_threads is not None else len(os.sched_getaffinity(0))
-        threads = min(threads, max(1, _shares(size, dof)))
+        threads = min(threads, _shares(size, dof))
         # As few chunks per thread as chunks of at most LANES allow, and all about one size, so that the
         # threads finish together: 90 members on 2 threads run as 23 + 23 and 23 + 21 (each padded to 24), not
         # 32 + 32 and 26.
