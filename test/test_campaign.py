@@ -332,6 +332,30 @@ def test_a_job_that_fails_is_reported_as_failed_beside_the_others_and_the_exit_i
     assert 'bag' not in bad and 'I' not in bad and 'gains_file' not in bad
     assert not (tmp_path / 'run' / 'gains' / f'{crushed}.yaml').exists()
     assert f'| {crushed} |' in (table := (tmp_path / 'run' / 'SUMMARY.md').read_text()) and '**FAILED**: search' in table
+    # One CMA-ES run certifies nothing, and every output says so beside its number.
+    assert good['converged'] is None and 'certificate' not in good and good['certainty'].startswith('not certified')
+    assert f"{good['search_index']:.6g} (not certified) |" in table and good['certainty'] in table
+    assert f"ok; WARNING: {good['certainty']}" in captured.out
+    assert good['certainty'] in (tmp_path / 'run' / good['gains_file']).read_text()
+
+
+def test_a_global_search_that_did_not_converge_says_so_in_every_output_of_the_campaign(capsys, tmp_path):
+    path = write(tmp_path, """
+        index: I1
+        budget: 300
+        motions: [{name: short, trajectory: 1, duration: 0.3}]
+        controllers: [computed_torque]
+    """)
+    assert main(['campaign', str(path), '--out', str(tmp_path / 'run'), '--jobs', '1']) == 0
+    printed = capsys.readouterr().out
+    (record,) = json.loads((tmp_path / 'run' / 'summary.json').read_text())['jobs']
+    assert record['status'] == 'ok' and record['method'] == 'global'
+    assert record['converged'] is False and record['certificate']['converged'] is False
+    assert record['certainty'] == record['certificate']['summary'] and record['certainty'].startswith('not converged')
+    assert f"ok; WARNING: {record['certainty']}" in printed
+    table = (tmp_path / 'run' / 'SUMMARY.md').read_text()
+    assert f"{record['search_index']:.6g} (not converged) |" in table and record['certainty'] in table
+    assert 'the search did not converge' in (tmp_path / 'run' / record['gains_file']).read_text()
 
 
 def test_a_stopped_campaign_leaves_its_run_folder_marked_interrupted_with_the_jobs_checked(capsys, tmp_path,

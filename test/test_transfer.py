@@ -72,6 +72,11 @@ def test_every_artefact_is_in_the_run_folder(run):
     assert read_gains_file(folder / 'retuned.yaml').urdf == str((folder / 'identified.urdf').resolve())
     page = (folder / 'transfer.md').read_text()
     assert report['verdict'] in page and 'times lower' in page
+    # 300 episodes certify neither search: the report, the page and each gains file say so.
+    for phase in ('nominal', 'retuned'):
+        assert report[phase]['converged'] is False and report[phase]['certainty'].startswith('not converged: ')
+        assert report[phase]['certainty'] in page
+        assert 'the search did not converge' in (folder / f'{phase}.yaml').read_text()
 
 
 def test_the_numbers_are_the_episodes_of_the_yamls_run_again(run, files):
@@ -111,6 +116,7 @@ def test_a_tolerance_the_prediction_misses_does_not_transfer(files, tmp_path):
     assert report['transfers'] is False and report['tolerance'] == 1e-6
     assert 'does not transfer: ' in out and 'transfers: ' not in out
     assert "measured I1 of the retuned gains is" in out
+    assert all(f"WARNING: the {phase} search: {report[phase]['certainty']}" in out for phase in ('nominal', 'retuned'))
     for phase in ('nominal', 'retuned'):
         for index in INDICES:
             assert math.isfinite(report[phase]['measured'][index])

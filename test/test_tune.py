@@ -31,6 +31,10 @@ def test_tune_improves_on_its_start_and_the_bag_agrees(capsys, tmp_path, control
     assert report['agree'] and report['max_rel_difference'] <= 1e-9
     assert score_bag(report['bag'])[key] == report['from_bag'][key]
     assert report['episodes'] <= 150
+    # Local runs alone certify nothing: the report and the gains file say so beside the number.
+    assert report['converged'] is None and 'certificate' not in report
+    assert '(**not certified**' in (tmp_path / 'small' / 'report.md').read_text()
+    assert f'not certified: --method {method} runs no independent global runs' in (tmp_path / 'gains.yaml').read_text()
     summary = json.loads((tmp_path / 'small' / 'summary.json').read_text())
     assert summary['status'] == 'complete' and summary['tune']['kp'] == report['kp']
     context = rclpy.Context()
@@ -42,6 +46,15 @@ def test_tune_improves_on_its_start_and_the_bag_agrees(capsys, tmp_path, control
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
+
+
+def test_a_local_method_prints_that_its_minimum_is_not_certified_beside_its_gains(capsys, tmp_path):
+    assert main(['tune', '--controller', 'computed_torque', '--index', 'I1', '--method', 'nelder-mead',
+                 '--budget', '60', '--omegas', '15', '--runs', str(tmp_path), '--run', 'small']) == 0
+    printed = capsys.readouterr().out.splitlines()
+    (verdict,) = [line for line in printed if 'certified' in line]
+    assert verdict.strip().startswith('WARNING: not certified: --method nelder-mead runs no independent global runs')
+    assert printed.index(verdict) < min(printed.index(line) for line in printed if ' kp = ' in line)
 
 
 def test_a_budget_too_small_for_the_starts_is_refused(capsys, tmp_path):

@@ -96,7 +96,8 @@ def _campaign_run(args: argparse.Namespace, campaign, runs: str, name: str | Non
                 if not args.json:
                     tqdm.write(f'  {job.label}: ' + (
                         f'{job.index_name} = {found.tuning.search.index:.6g} after {found.tuning.search.episodes} '
-                        'episodes' if found.tuning else f'FAILED: {found.error}'), file=sys.stderr)
+                        f'episodes{"" if found.tuning.search.converged else ", " + found.tuning.search.certainty()}'
+                        if found.tuning else f'FAILED: {found.error}'), file=sys.stderr)
 
             found = run_searches(jobs, progress, finished)
 
@@ -121,7 +122,8 @@ def print_campaign(summary: dict, path: Path) -> None:
     for record in jobs:
         if record['status'] == 'ok':
             print(f"{record['name']:<{width}}  {record['index']:<2} search {record['search_index']:.6g}  "
-                  f"bag {record['bag_index']:.6g}  ok")
+                  f"bag {record['bag_index']:.6g}  ok"
+                  + ('' if record['converged'] else f"; WARNING: {record['certainty']}"))
         else:
             print(f"{record['name']:<{width}}  FAILED: {record['reason']}")
     failed = summary['failed']

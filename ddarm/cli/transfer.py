@@ -88,14 +88,20 @@ def _tuned(args: argparse.Namespace, template: EpisodeSpec, label: str, scenario
 def _tuned_gains(args: argparse.Namespace, run, template: EpisodeSpec, phase: str, command: str, scenarios=None):
     """The search on `template` (_tuned) and its gains written to the run folder as `<phase>.yaml`, as `ddarm tune
     --out` writes them: the YAML's path and the tuning."""
-    from ddarm.tuning.outputs import write_gains
+    from ddarm.tuning.outputs import search_doubt, write_gains
 
     tuning = _tuned(args, template, f'{phase} search', scenarios)
     kp, kv = tuning.search.kp, tuning.search.kv
     (path, *_) = write_gains(run, kp, kv, template.with_gains(kp, kv),
-                             f'{args.index} = {tuning.best[args.index]!r} on {template.urdf}\nfrom: {command}',
-                             name=f'{phase}.yaml')
+                             f'{args.index} = {tuning.best[args.index]!r} on {template.urdf}'
+                             f'{search_doubt(tuning.search)}\nfrom: {command}', name=f'{phase}.yaml')
     return Path(path), tuning
+
+
+def _search_verdict(tuning) -> dict:
+    """A phase's record of how sure its search is: `converged` (None for a method that gives no certificate) and
+    `certainty`, the line `ddarm tune` prints."""
+    return {'converged': tuning.search.converged, 'certainty': tuning.search.certainty()}
 
 
 def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episodes, Episodes]:
@@ -152,10 +158,11 @@ def command_transfer(args: argparse.Namespace) -> int:
         excite = run.write_text('excite.yaml', excitation.text)
         # 1. the nominal tuning on the URDF
         _say(args, f'1/7 tuning {law} on {args.urdf} ({args.budget} episodes, index {args.index}) …')
-        nominal_gains, _ = _tuned_gains(args, run, template, 'nominal', command)
+        nominal_gains, nominal_tuning = _tuned_gains(args, run, template, 'nominal', command)
         # 2. the nominal gains on the robot
         _say(args, '2/7 validating the nominal gains on the robot …')
         nominal, *nominal_episodes = _validated(nominal_gains, args)
+        nominal.update(_search_verdict(nominal_tuning))
         # 3, 4. the excitation recorded on the robot through the graph, twice
         excite_spec = dataclasses.replace(template, motion=str(excite.absolute()), duration=None, **robot)
         kp, kv = gains_from_omega(excite_spec, EXCITATION_OMEGA)
@@ -183,6 +190,7 @@ def command_transfer(args: argparse.Namespace) -> int:
         # 7. the retuned gains on the robot
         _say(args, '7/7 validating the retuned gains on the robot …')
         retuned, *retuned_episodes = _validated(retuned_gains, args)
+        retuned.update(_search_verdict(retuned_tuning))
         transfers, reason = verdict(retuned, args.index, args.tolerance)
         report = {
             'nominal': nominal,
@@ -233,6 +241,9 @@ def print_transfer(report: dict) -> None:
         print(f"  retuned robustly over the estimate and {len(retuned['samples'])} samples: predicted worst "
               f"{report['index']} {'- (diverged in a sample)' if worst is None else f'{worst:.6g}'}, measured "
               f"{retuned['measured'][report['index']]:.6g}")
+    for phase in ('nominal', 'retuned'):
+        if not report[phase]['converged']:
+            print(f"  WARNING: the {phase} search: {report[phase]['certainty']}")
     print(f"  {report['verdict']}")
     print(f"  {improvement_sentence(report['improvement_I1'])}")
     print(f"  run folder {report['run']}")

@@ -145,9 +145,7 @@ def print_tuning(report: dict, tuning) -> None:
           f"{format_vector(tuning.start_indices)}")
     if report['restarts']:
         print(f'  {local_runs_text(report)}')
-    if 'certificate' in report:
-        certificate = report['certificate']
-        print(f"  {'' if certificate['converged'] else 'WARNING: '}{certificate['summary']}")
+    print(f"  {'' if tuning.search.converged else 'WARNING: '}{tuning.search.certainty()}")
     width = max(len(name) for name in report['joint_names'])
     for name, gains in report['gains'].items():
         print(f"  {name:<{width}}  kp = {gains['p']:.6g}  kv = {gains['d']:.6g}")

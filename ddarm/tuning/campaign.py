@@ -39,7 +39,7 @@ from ddarm.recording.runs import RunFolder, write_new_file
 from ddarm.reporting.text import figure_text, markdown_paragraph, markdown_text
 from ddarm.tuning.jobs import Job
 from ddarm.tuning.methods import DEFAULT_METHOD, DEFAULT_TUNE_BUDGET, METHODS
-from ddarm.tuning.outputs import AGREEMENT, relative_difference, write_gains
+from ddarm.tuning.outputs import AGREEMENT, relative_difference, search_doubt, write_gains
 from ddarm.tuning.robust import describe_scenario, scenario_record
 from ddarm.tuning.search import SearchError, check_search, omega_starts
 from ddarm.tuning.tune import Tuning, tune
@@ -436,7 +436,10 @@ def search_record(job: CampaignJob, found: JobSearch) -> dict:
                                                                      tuning.search.kv.tolist())},
                   search_index=tuning.search.index,
                   in_process={key: tuning.best[key] for key in INDICES}, episodes=tuning.search.episodes,
-                  search_wall_time_s=tuning.wall_time_s, warnings=list(tuning.warnings), spec=spec.to_dict())
+                  search_wall_time_s=tuning.wall_time_s, warnings=list(tuning.warnings), spec=spec.to_dict(),
+                  converged=tuning.search.converged, certainty=tuning.search.certainty())
+    if tuning.search.certificate is not None:
+        record['certificate'] = tuning.search.certificate.to_dict()
     return {**record, 'status': 'searched'}
 
 
@@ -510,7 +513,8 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
                 'reason': f'the bag disagrees with the search: {job.index} = {scored[job.index]!r} from the bag, '
                           f'{tuning.best[job.index]!r} in-process (relative difference {difference:.2e})'}
     (run.path / 'gains').mkdir(exist_ok=True)
-    provenance = (f"campaign job {job.name}: {job.index} = {scored[job.index]!r} (scored from {record['bag']})\n"
+    provenance = (f"campaign job {job.name}: {job.index} = {scored[job.index]!r} (scored from {record['bag']})"
+                  f"{search_doubt(tuning.search)}\n"
                   f"from: {run.summary['command']}")
     (gains_file,) = write_gains(run, tuning.search.kp, tuning.search.kv, spec, provenance,
                                 name=f'gains/{job.name}.yaml')
@@ -581,11 +585,18 @@ def summary_table(campaign: Campaign, records: list[dict]) -> str:
         status = 'ok' if record['status'] == 'ok' else f"**FAILED**: {markdown_text(record['reason'])}"
         cells = (markdown_text(record[key])
                  for key in ('name', 'arm', 'motion', 'controller', 'scenario_text', 'index'))
-        lines.append('| ' + ' | '.join((*cells, _cell(record.get('search_index')), bag, status)) + ' |')
+        doubt = ({False: ' (not converged)', None: ' (not certified)'}.get(record['converged'], '')
+                 if 'certainty' in record else '')  # a failed search's record has no verdict
+        lines.append('| ' + ' | '.join((*cells, _cell(record.get('search_index')) + doubt, bag, status)) + ' |')
     failed = failed_jobs(records)
     lines += ['', f'{len(records) - len(failed)} of {len(records)} jobs ok'
-              + (f"; failed: {markdown_text(', '.join(failed))}" if failed else '') + '.', '',
-              f'![index per job]({PLOT_NAME})', '']
+              + (f"; failed: {markdown_text(', '.join(failed))}" if failed else '') + '.', '']
+    doubted = [record for record in records if 'certainty' in record and not record['converged']]
+    if doubted:
+        lines += ['Searches not sure of their minimum (a larger `budget` is what to try):', '',
+                  *(f"- {markdown_text(record['name'])}: {markdown_text(record['certainty'])}" for record in doubted),
+                  '']
+    lines += [f'![index per job]({PLOT_NAME})', '']
     return '\n'.join(lines)
 
 

@@ -88,6 +88,14 @@ def relative_difference(in_process: dict, from_bag: dict) -> float:
     return max(abs(from_bag[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in INDICES)
 
 
+def search_doubt(search) -> str:
+    """What a gains file's header adds after its index when the search that found the gains is not sure of them:
+    '' when its certificate holds."""
+    if search.converged is False:
+        return f'; the search did not converge ({search.certainty()})'
+    return '' if search.converged else f'; {search.certainty()}'
+
+
 def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec, tuning, scored: dict, *,
                   index: str, method: str, seed: int, out: str | None = None) -> dict:
     """A search for `index` (I1, I2 or I) done, and its best gains' episode scored from its bag (`scored`):
@@ -124,8 +132,7 @@ def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec,
     if tuning.search.certificate is not None:
         report['certificate'] = tuning.search.certificate.to_dict()
     provenance = f"{index} = {scored[index]!r} (scored from {scored['bag']})"
-    if tuning.search.converged is False:
-        provenance += f"; the search did not converge ({tuning.search.certificate.summary()})"
+    provenance += search_doubt(tuning.search)
     if tuning.robust is not None:
         report['robust'] = tuning.robust.to_dict()
         objective, chosen = tuning.robust.aggregate, tuning.robust.chosen

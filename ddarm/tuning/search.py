@@ -309,6 +309,14 @@ class SearchResult:
         """Whether the global search's certificate holds; None for the other methods, which give none."""
         return None if self.certificate is None else self.certificate.converged
 
+    def certainty(self) -> str:
+        """One line on how sure the search is of its minimum, for every output that prints or writes it: the
+        certificate's summary, or, for the methods that give none, that the minimum is not certified."""
+        if self.certificate is not None:
+            return self.certificate.summary()
+        return (f'not certified: --method {self.method} runs no independent global runs to compare its minimum '
+                'with, so a deeper basin may remain unseen; the default global search says how sure it is')
+
     def best_so_far(self) -> np.ndarray:
         """The best index after each episode: the optimiser's progress."""
         return np.minimum.accumulate(self.history_index)

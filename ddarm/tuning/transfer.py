@@ -108,6 +108,11 @@ PARAMETER_HEADER = ['joint', 'mass kg', '(URDF)', 'armature kg m²', '(URDF)', '
                     'friction N m', '(URDF)', 'held-out residual']
 
 
+def _doubt_words(phase: dict) -> str:
+    """After a phase's gains on the page: that its search is not sure of them, if so."""
+    return '' if phase['converged'] else f"; **{markdown_text(phase['certainty'])}**"
+
+
 def write_transfer_page(run: RunFolder, report: dict, index: str, figures: dict[str, str], title: str) -> Path:
     """transfer.md and transfer.html: the indices before and after identification, the identified parameters beside
     the URDF's, the figures (`figures`: phase → PNG name in the run folder) and the verdict. Every text from a file
@@ -116,11 +121,12 @@ def write_transfer_page(run: RunFolder, report: dict, index: str, figures: dict[
     lines = [f'# {markdown_text(title)}', '', f"Command: {markdown_code(run.summary['command'])}", '',
              f"**{markdown_text(report['verdict'])}**", '',
              f"- {markdown_text(improvement_sentence(report['improvement_I1']))}",
-             f"- nominal gains: {markdown_code(report['nominal']['gains'])}, tuned on the URDF",
+             f"- nominal gains: {markdown_code(report['nominal']['gains'])}, tuned on the URDF"
+             + _doubt_words(report['nominal']),
              f"- identified URDF: {markdown_code(identification['urdf'])} (condition number "
              f"{identification['condition_number']:.4g})",
              f"- retuned gains: {markdown_code(report['retuned']['gains'])}, tuned on the identified URDF"
-             + _robust_words(report['retuned'], index),
+             + _robust_words(report['retuned'], index) + _doubt_words(report['retuned']),
              f"- bags: {', '.join(markdown_code(bag) for bag in report['bags'])}",
              f"- the verdict: |measured {index} − predicted {index}| / measured {index} of the retuned gains at most "
              f"{report['tolerance']:g}, neither side diverged",
