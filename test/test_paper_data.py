@@ -266,7 +266,8 @@ def results_json() -> dict:
                          'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
                                       {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
                                        'stopped_by': ['budget']}],
-                         'restarts_within_1_percent': 1}}
+                         'restarts_within_1_percent': 1, 'converged': False,
+                         'certainty': 'not converged: 1 of 2 runs within 1 %'}}
              for controller, delay in (('pd_gravity', 0), ('computed_torque', 1))
              for index, cases in (('I1', TABLE4_CASES[:1]), ('I', TABLE4_CASES)) for t, d, p in cases]
     # PD + gravity: I1 grows 2x with τ, 4x when limited; computed torque: 3x, 1.1x limited; Table 3: 1.5x.
@@ -295,7 +296,7 @@ def results_json() -> dict:
                        'I1_at_omega_15': 43 * period, 'diverged_at_omega_15': False, 'bag': 'bags/s'}
                       for period in (0.005, 0.01, 0.05)],
     }
-    return {'schema_version': 2, 'command': 'ddarm reproduce --quick', 'quick': True,
+    return {'schema_version': 3, 'command': 'ddarm reproduce --quick', 'quick': True,
             'started': '2026-12-01T09:36:23+0000',
             'settings': {'paper_delays': {'pd_gravity': 0, 'computed_torque': 1}, 'search_budget': 30,
                          'de_popsize': 16, 'taus': [0.0, 0.1], 'start_omegas': [8.0, 15.0],
@@ -360,7 +361,7 @@ def test_the_schema_has_the_documented_keys():
     (lambda data: data.update(section2=[]), 'section2 must be a mapping'),
     (lambda data: data.pop('schema_version'), "missing key 'schema_version'"),
     (lambda data: data.update(schema_version=1), 'schema_version is 1: this ddarm reads results.json of '
-                                                 'schema_version 2 only'),
+                                                 'schema_version 3 only'),
     (lambda data: data.update(schema_version='1'), "schema_version is '1'"),
     (lambda data: data.update(schema_version=True), 'schema_version is True'),
 ])
@@ -390,8 +391,8 @@ def test_a_duration_and_a_T_that_differ_are_refused():
 def test_results_are_written_with_their_schema_version_first():
     results = Results(command='ddarm reproduce', quick=True, started='now', settings=Results.from_json(
         results_json()).settings)
-    assert SCHEMA_VERSION == 2 and list(results.to_json())[0] == 'schema_version'
-    assert results.to_json()['schema_version'] == 2
+    assert SCHEMA_VERSION == 3 and list(results.to_json())[0] == 'schema_version'
+    assert results.to_json()['schema_version'] == 3
 
 
 def test_another_versions_keys_are_refused_by_the_version_not_by_a_key():

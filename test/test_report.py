@@ -64,7 +64,8 @@ def synthetic_results(scores: dict) -> dict:
                          'restarts': [{'start': 'ω rule', 'popsize': 16, 'episodes': 20, 'index': 0.1, 'stopped_by': ['tolx']},
                                       {'start': 'random', 'popsize': 16, 'episodes': 10, 'index': None,
                                        'stopped_by': ['budget']}],
-                         'restarts_within_1_percent': 1}}
+                         'restarts_within_1_percent': 1, 'converged': False,
+                         'certainty': 'not converged: 1 of 2 runs within 1 %'}}
              for controller in CONTROLLERS for index in ('I1', 'I')]
 
     def tau_row(controller, tau, limited, index, first, paper):
@@ -124,7 +125,7 @@ def synthetic_results(scores: dict) -> dict:
               'search': search, 'rows': rows}
     stability_map = [{'delay': d, 'zeta': z, 'omega_delta': w} for d, z, w in
                      ((0, 0.7, 1 / 0.7), (0, 1.0, 1.0), (1, 0.7, 0.495), (1, 1.0, 0.4262))]
-    return {'schema_version': 2, 'command': 'ddarm reproduce --out runs/paper --quick', 'quick': True,
+    return {'schema_version': 3, 'command': 'ddarm reproduce --out runs/paper --quick', 'quick': True,
             'started': '2026-11-23T12:30:00+0000', 'wall_time_s': 41.7,
             'settings': {'paper_delays': DELAYS, 'search_budget': 600, 'de_popsize': 16, 'taus': TAUS,
                          'start_omegas': [8.0, 12.0, 15.0, 20.0, 30.0], 'pareto_budget': 1000,
@@ -174,6 +175,8 @@ def test_the_report_puts_our_figures_beside_the_papers_and_links_their_bags(writ
     # The optimised gains, with their undisturbed episode's index from its bag beside the search's own.
     assert '| `pd_gravity-I1` |' in text and '| 4.00 → 0.100 | [0.101](bags/pd_gravity) |' in text
     assert f"| 4.00 → 0.100 | [{number(scores['computed_torque']['I'])}](bags/computed_torque) |" in text
+    # Each search's certificate beside its runs: one that did not converge gives its line.
+    assert '| 1 of 2 | **not converged: 1 of 2 runs within 1 %** | 0.100, diverged |' in text
     assert 'none: even ω_min breaks the torque conditions' in text
     assert '| 0.05 | 20 | 12.0 | **no** |' in text
     for claim in results['claims']:

@@ -94,10 +94,11 @@ def _campaign_run(args: argparse.Namespace, campaign, runs: str, name: str | Non
                 records.add(search_record(by_name[job.key], found))  # a search done is kept, whatever comes next
                 progress(job, job.total, None)
                 if not args.json:
+                    search = found.tuning.search if found.tuning else None
                     tqdm.write(f'  {job.label}: ' + (
-                        f'{job.index_name} = {found.tuning.search.index:.6g} after {found.tuning.search.episodes} '
-                        f'episodes{"" if found.tuning.search.converged else ", " + found.tuning.search.certainty()}'
-                        if found.tuning else f'FAILED: {found.error}'), file=sys.stderr)
+                        f'{job.index_name} = {search.index:.6g} after {search.episodes} episodes'
+                        + ('' if search.converged else f', {search.certainty(hint=False)}')
+                        if search else f'FAILED: {found.error}'), file=sys.stderr)
 
             found = run_searches(jobs, progress, finished)
 

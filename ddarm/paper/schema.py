@@ -23,8 +23,9 @@ from ddarm.paper.settings import Controller, Table4Figures
 Index = Literal[INDICES]
 Vector = tuple[float, ...]
 # results.json's layout: raise it with any change to the keys or their meaning. `duration` came within version 2,
-# beside `T`, which it renames and which is still written: files with either key (or both) read alike.
-SCHEMA_VERSION = 2
+# beside `T`, which it renames and which is still written: files with either key (or both) read alike. Version 3
+# added each search's `converged` and `certainty`.
+SCHEMA_VERSION = 3
 
 
 class ResultsError(DdarmError, ValueError):
@@ -64,6 +65,8 @@ class Search:
     evolution_generations: int  # differential evolution's generations before the local runs
     restarts: list[RestartRow]
     restarts_within_1_percent: int  # the runs whose best is within 1 % of in_process_index: a confidence figure
+    converged: bool | None  # whether the global search's certificate holds (None: a method that gives none)
+    certainty: str  # the certificate's one line (ddarm.tuning.search.SearchResult.certainty)
 
 
 @dataclass(frozen=True)

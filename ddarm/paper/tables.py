@@ -10,6 +10,7 @@ import numpy as np
 from ddarm.control.laws import CONTROLLERS
 from ddarm.paper.schema import Results
 from ddarm.paper.settings import PaperSettings
+from ddarm.reporting.text import markdown_text
 
 CONTROLLER_NAMES = {'pd_gravity': 'PD + gravity', 'computed_torque': 'computed torque'}
 
@@ -211,7 +212,8 @@ def _undisturbed_row(results: Results, name: str):
 
 def gains(results: Results, cells: Cells) -> str:
     header = ['gains', 'controller', 'index', 'case', 'd', 'k_p', 'k_v', 'start → optimum (in-process)',
-              'optimum from its bag', 'episodes', 'wall time s', 'episodes/s', 'runs within 1 %', 'each run\'s best']
+              'optimum from its bag', 'episodes', 'wall time s', 'episodes/s', 'runs within 1 %', 'certificate',
+              'each run\'s best']
     body = []
     for row in results.gains:
         search = row.search
@@ -222,21 +224,28 @@ def gains(results: Results, cells: Cells) -> str:
                      vector(row.kv),
                      f'{number(search.start_index)} → {number(search.in_process_index)}', scored,
                      str(search.episodes), number(search.wall_time_s), number(search.episodes_per_s),
-                     f'{search.restarts_within_1_percent} of {len(search.restarts)}',
+                     f'{search.restarts_within_1_percent} of {len(search.restarts)}', certificate_cell(search),
                      ', '.join('diverged' if restart.index is None else number(restart.index)
                                for restart in search.restarts)])
     return f"""## Optimised gains
 
-Every search ran in-process through the batch engine: a global search (differential evolution over a box
-around section 2's ω-rule gains, then local CMA-ES runs from the best distinct points it saw). "start" is the
-best ω-rule start's index; "runs within 1 %" counts the local runs whose own best came within 1 % of the
-optimum, a confidence figure: several independent runs finding the same basin
-make a better one unlikely, one alone says the landscape has basins the others missed. Beside its optimum, the
+Every search ran in-process through the batch engine: `ddarm tune`'s global search, a portfolio of independent
+runs (Nelder-Mead from section 2's ω-rule gains of both laws, differential evolutions and wide CMA-ES runs, each
+polished by local CMA-ES runs). "start" is the best ω-rule start's index; "runs within 1 %" counts the runs whose
+own best came within 1 % of the optimum: several independent runs finding the same basin make a better one
+unlikely, one alone says the landscape has basins the others missed. "certificate" is the search's verdict on
+them (docs/tuning.md, "The certificate"): *converged* once enough runs of both kinds agree within 0.5 %, otherwise
+*not converged* with what was missing, the search having spent its budget. Beside its optimum, the
 same gains' index scored from the bag of their undisturbed ROS episode (τ = 0, torque unlimited, from Tables
 2-4): the two should agree.
 
 {markdown_table(header, body)}
 """
+
+
+def certificate_cell(search) -> str:
+    """A search's verdict in a table cell: converged, or the certificate's line on why not."""
+    return 'converged' if search.converged else f'**{markdown_text(search.certainty)}**'
 
 
 def section2(results: Results, cells: Cells, settings: PaperSettings) -> str:
@@ -352,7 +361,8 @@ def _robust_table(robust, cells: Cells) -> str:
 {CONTROLLER_NAMES[robust.controller]}, {case_text(robust.trajectory, robust.duration, robust.period)}: the gains that
 minimise the {robust.objective} I (3.2) over the scenarios below (in-process, {robust.search.episodes} episodes in
 {number(robust.search.wall_time_s)} s; {robust.search.restarts_within_1_percent} of its
-{len(robust.search.restarts)} local runs within 1 % of its optimum), k_p = {vector(robust.kp)}, k_v =
+{len(robust.search.restarts)} independent runs within 1 % of its optimum; its certificate:
+{certificate_cell(robust.search)}), k_p = {vector(robust.kp)}, k_v =
 {vector(robust.kv)}, beside the nominal optimum `{robust.nominal}` (Table 4), each run on every scenario through
 the ROS graph and scored from its bag.
 

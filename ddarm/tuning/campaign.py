@@ -437,7 +437,7 @@ def search_record(job: CampaignJob, found: JobSearch) -> dict:
                   search_index=tuning.search.index,
                   in_process={key: tuning.best[key] for key in INDICES}, episodes=tuning.search.episodes,
                   search_wall_time_s=tuning.wall_time_s, warnings=list(tuning.warnings), spec=spec.to_dict(),
-                  converged=tuning.search.converged, certainty=tuning.search.certainty())
+                  converged=tuning.search.converged, certainty=tuning.search.certainty(hint=False))
     if tuning.search.certificate is not None:
         record['certificate'] = tuning.search.certificate.to_dict()
     return {**record, 'status': 'searched'}
@@ -514,7 +514,7 @@ def check_job(recorder: EpisodeRecorder, run: RunFolder, job: CampaignJob, found
                           f'{tuning.best[job.index]!r} in-process (relative difference {difference:.2e})'}
     (run.path / 'gains').mkdir(exist_ok=True)
     provenance = (f"campaign job {job.name}: {job.index} = {scored[job.index]!r} (scored from {record['bag']})"
-                  f"{search_doubt(tuning.search)}\n"
+                  f"{search_doubt(tuning.search, hint=False)}\n"
                   f"from: {run.summary['command']}")
     (gains_file,) = write_gains(run, tuning.search.kp, tuning.search.kv, spec, provenance,
                                 name=f'gains/{job.name}.yaml')

@@ -88,12 +88,12 @@ def relative_difference(in_process: dict, from_bag: dict) -> float:
     return max(abs(from_bag[k] - in_process[k]) / max(abs(in_process[k]), 1e-300) for k in INDICES)
 
 
-def search_doubt(search) -> str:
-    """What a gains file's header adds after its index when the search that found the gains is not sure of them:
-    '' when its certificate holds."""
+def search_doubt(search, hint: bool = True) -> str:
+    """What a gains file's header adds after its index when the search that found the gains is not sure of them
+    (`hint` as SearchResult.certainty takes it): '' when its certificate holds."""
     if search.converged is False:
-        return f'; the search did not converge ({search.certainty()})'
-    return '' if search.converged else f'; {search.certainty()}'
+        return f'; the search did not converge ({search.certainty(hint)})'
+    return '' if search.converged else f'; {search.certainty(hint)}'
 
 
 def finish_tuning(run: RunFolder, template: EpisodeSpec, best_spec: EpisodeSpec, tuning, scored: dict, *,

@@ -246,8 +246,8 @@ class Certificate:
                 groups.append([index, 1])
         return [(index, count) for index, count in groups]
 
-    def summary(self) -> str:
-        """One line: converged, or not and what to try."""
+    def summary(self, hint: bool = True) -> str:
+        """One line: converged, or not and (given `hint`) the `--budget` to try."""
         runs = f'{self.within(SAME_BASIN)} of {len(self.runs)} runs within 1 %'
         if self.converged:
             return (f'converged: {runs}, {self.within(AGREEMENT)} within 0.5 % of the best; '
@@ -258,8 +258,8 @@ class Certificate:
             ('run from the ω-rule starts', True), ('global run', False))
             if self.within(AGREEMENT) and not self.within(AGREEMENT, from_rule_starts))
         return (f'not converged: {runs} ({self.within(AGREEMENT)} within 0.5 %, {self.required_runs} needed, after '
-                f'{self.global_runs} of at least {MIN_GLOBAL_RUNS} global runs{family}{unsettled}); '
-                f'try --budget {2 * max(self.budget, self.episodes)}')
+                f'{self.global_runs} of at least {MIN_GLOBAL_RUNS} global runs{family}{unsettled})'
+                + (f'; try --budget {2 * max(self.budget, self.episodes)}' if hint else ''))
 
     def to_dict(self) -> dict:
         """The JSON of `certificate`."""
@@ -309,11 +309,12 @@ class SearchResult:
         """Whether the global search's certificate holds; None for the other methods, which give none."""
         return None if self.certificate is None else self.certificate.converged
 
-    def certainty(self) -> str:
+    def certainty(self, hint: bool = True) -> str:
         """One line on how sure the search is of its minimum, for every output that prints or writes it: the
-        certificate's summary, or, for the methods that give none, that the minimum is not certified."""
+        certificate's summary (`hint`: with the `--budget` to try, for a command that has that option), or, for the
+        methods that give none, that the minimum is not certified."""
         if self.certificate is not None:
-            return self.certificate.summary()
+            return self.certificate.summary(hint)
         return (f'not certified: --method {self.method} runs no independent global runs to compare its minimum '
                 'with, so a deeper basin may remain unseen; the default global search says how sure it is')
 
