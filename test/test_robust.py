@@ -132,6 +132,8 @@ def test_ddarm_tune_json_has_the_robust_comparison_and_the_yaml_says_it_is_robus
         assert gains['worst'] == max(scores['I'] for scores in gains['per_scenario'])
         assert gains['mean'] == pytest.approx(np.mean([scores['I'] for scores in gains['per_scenario']]), rel=1e-15)
     assert robust['chosen']['mean'] <= robust['nominal_optimum']['mean']
+    assert robust['nominal_search']['converged'] is None  # Nelder-Mead alone certifies nothing, and says so
+    assert robust['nominal_search']['certainty'].startswith('not certified: --method nelder-mead')
     assert report['search_index'] == pytest.approx(robust['chosen']['mean'], rel=1e-12)
     page = (tmp_path / 'robust' / 'report.md').read_text()
     assert '## Robustness' in page and f"{robust['chosen']['mean']:.9g}" in page
@@ -147,6 +149,7 @@ def test_ddarm_tune_prints_the_scenarios_robust_against_nominal(capsys, tmp_path
     header = next(i for i, line in enumerate(lines) if 'robust I' in line and 'nominal I' in line)
     assert lines[header + 1].split()[:3] == ['τ', '=', '0'] and lines[header + 2].split()[:3] == ['τ', '=', '0.1']
     assert lines[header + 3].split()[0] == 'worst' and lines[header + 4].split()[0] == 'mean'
+    assert sum(line.strip().startswith("WARNING: the nominal optimum's search: not certified") for line in lines) == 1
     summary = json.loads((tmp_path / 'printed' / 'summary.json').read_text())['tune']['robust']
     worst = f"{summary['chosen']['worst']:.6g}"
     assert lines[header + 3].split()[1] == worst

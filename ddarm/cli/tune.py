@@ -176,6 +176,8 @@ def print_robustness(robust: dict, index: str) -> None:
     search = robust['nominal_search']
     print(f"  robust over {len(robust['scenarios'])} scenarios ({robust['objective']} {index}), against the nominal "
           f"optimum (its search: {search['episodes']} episodes in {search['wall_time_s']:.2f} s)")
+    if not search['converged']:
+        print(f"    WARNING: the nominal optimum's search: {search['certainty']}")
     print(f"    nominal optimum  kp = {format_vector(nominal['kp'])}  kv = {format_vector(nominal['kv'])}")
     rows = [(f"τ = {scenario['tau']:g} s",
              'mass scale ' + (f"{scenario['mass_scale'][0]:g}" if len(set(scenario['mass_scale'])) == 1

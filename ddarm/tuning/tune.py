@@ -38,7 +38,9 @@ class Robustness:
                 'chosen': self.chosen.to_dict(), 'nominal_optimum': self.nominal_optimum.to_dict(),
                 'nominal_search': {'episodes': self.nominal_search.episodes, 'batches': self.nominal_search.batches,
                                    'wall_time_s': self.nominal_wall_time_s,
-                                   'index': float(index) if np.isfinite(index) else None}}
+                                   'index': float(index) if np.isfinite(index) else None,
+                                   'converged': self.nominal_search.converged,
+                                   'certainty': self.nominal_search.certainty()}}
 
 
 @dataclass(frozen=True)
