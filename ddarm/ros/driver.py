@@ -360,8 +360,8 @@ class GraphDriver(Node):
         """Write the messages recorded and not yet written, in the order heard."""
         unwritten, self._unwritten = self._unwritten, []
         if self.bag is not None:
-            for topic, stamp_ns, data in unwritten:
-                self.bag.write(topic, stamp_ns, data)
+            for topic, stamp, data in unwritten:
+                self.bag.write(topic, stamp, data)
 
     def _on_clock(self, data: bytes) -> None:
         if self.recording is None:
