@@ -33,6 +33,7 @@ def test_tune_improves_on_its_start_and_the_bag_agrees(capsys, tmp_path, control
     assert report['episodes'] <= 150
     # Local runs alone certify nothing: the report and the gains file say so beside the number.
     assert report['converged'] is None and 'certificate' not in report
+    assert report['certainty'].startswith(f'not certified: --method {method} runs no independent global runs')
     assert '(**not certified**' in (tmp_path / 'small' / 'report.md').read_text()
     assert f'not certified: --method {method} runs no independent global runs' in (tmp_path / 'gains.yaml').read_text()
     summary = json.loads((tmp_path / 'small' / 'summary.json').read_text())
@@ -107,7 +108,7 @@ def test_a_global_search_that_did_not_converge_says_so_beside_its_gains(capsys, 
     assert printed.index(verdict[0]) < min(printed.index(line) for line in printed if ' kp = ' in line)
     report = json.loads((tmp_path / 'small' / 'summary.json').read_text())['tune']
     assert report['converged'] is False and report['certificate']['converged'] is False
-    assert report['certificate']['summary'] in verdict[0]
+    assert report['certificate']['summary'] in verdict[0] and report['certainty'] == report['certificate']['summary']
     assert len(report['certificate']['runs']) == len(report['restarts'])
     # Each run says its family: the Nelder-Mead runs from the ω-rule starts, or a global run.
     rule_start_runs = ('Nelder-Mead', 'CMA-ES polish of the Nelder-Mead')
