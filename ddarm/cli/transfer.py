@@ -98,12 +98,6 @@ def _tuned_gains(args: argparse.Namespace, run, template: EpisodeSpec, phase: st
     return Path(path), tuning
 
 
-def _search_verdict(tuning) -> dict:
-    """A phase's record of how sure its search is: `converged` (None for a method that gives no certificate) and
-    `certainty`, the line `ddarm tune` prints."""
-    return {'converged': tuning.search.converged, 'certainty': tuning.search.certainty()}
-
-
 def _validated(gains_path: Path, args: argparse.Namespace) -> tuple[dict, Episodes, Episodes]:
     """The controller YAML as `ddarm validate` runs it: the prediction on its URDF, the measurement on the robot
     (in-process). Returns the phase's record and both episodes."""
@@ -162,7 +156,7 @@ def command_transfer(args: argparse.Namespace) -> int:
         # 2. the nominal gains on the robot
         _say(args, '2/7 validating the nominal gains on the robot …')
         nominal, *nominal_episodes = _validated(nominal_gains, args)
-        nominal.update(_search_verdict(nominal_tuning))
+        nominal.update(nominal_tuning.search.certainty_fields())
         # 3, 4. the excitation recorded on the robot through the graph, twice
         excite_spec = dataclasses.replace(template, motion=str(excite.absolute()), duration=None, **robot)
         kp, kv = gains_from_omega(excite_spec, EXCITATION_OMEGA)
@@ -190,7 +184,7 @@ def command_transfer(args: argparse.Namespace) -> int:
         # 7. the retuned gains on the robot
         _say(args, '7/7 validating the retuned gains on the robot …')
         retuned, *retuned_episodes = _validated(retuned_gains, args)
-        retuned.update(_search_verdict(retuned_tuning))
+        retuned.update(retuned_tuning.search.certainty_fields())
         transfers, reason = verdict(retuned, args.index, args.tolerance)
         report = {
             'nominal': nominal,

@@ -145,7 +145,7 @@ def print_tuning(report: dict, tuning) -> None:
           f"{format_vector(tuning.start_indices)}")
     if report['restarts']:
         print(f'  {local_runs_text(report)}')
-    print(f"  {'' if tuning.search.converged else 'WARNING: '}{tuning.search.certainty()}")
+    print(f"  {'' if report['converged'] else 'WARNING: '}{report['certainty']}")
     width = max(len(name) for name in report['joint_names'])
     for name, gains in report['gains'].items():
         print(f"  {name:<{width}}  kp = {gains['p']:.6g}  kv = {gains['d']:.6g}")

@@ -59,8 +59,7 @@ def _search_record(result, wall: float, start_count: int) -> Search:
     return Search(episodes=result.episodes, wall_time_s=wall, episodes_per_s=result.episodes / wall,
                   in_process_index=result.index, start_index=float(np.min(result.history_index[:start_count])),
                   method=result.method, evolution_generations=result.evolution_generations, restarts=restarts,
-                  restarts_within_1_percent=result.restarts_within(0.01), converged=result.converged,
-                  certainty=result.certainty(hint=False))
+                  restarts_within_1_percent=result.restarts_within(0.01), **result.certainty_fields(hint=False))
 
 
 def optimise(template: EpisodeSpec, index: str, budget: Budget, progress=None) -> GainSet:

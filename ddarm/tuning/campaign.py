@@ -437,7 +437,7 @@ def search_record(job: CampaignJob, found: JobSearch) -> dict:
                   search_index=tuning.search.index,
                   in_process={key: tuning.best[key] for key in INDICES}, episodes=tuning.search.episodes,
                   search_wall_time_s=tuning.wall_time_s, warnings=list(tuning.warnings), spec=spec.to_dict(),
-                  converged=tuning.search.converged, certainty=tuning.search.certainty(hint=False))
+                  **tuning.search.certainty_fields(hint=False))
     if tuning.search.certificate is not None:
         record['certificate'] = tuning.search.certificate.to_dict()
     return {**record, 'status': 'searched'}

@@ -318,6 +318,10 @@ class SearchResult:
         return (f'not certified: --method {self.method} runs no independent global runs to compare its minimum '
                 'with, so a deeper basin may remain unseen; the default global search says how sure it is')
 
+    def certainty_fields(self, hint: bool = True) -> dict:
+        """`converged` and `certainty` (with `hint`, see certainty), as every JSON that reports a search gives them."""
+        return {'converged': self.converged, 'certainty': self.certainty(hint)}
+
     def best_so_far(self) -> np.ndarray:
         """The best index after each episode: the optimiser's progress."""
         return np.minimum.accumulate(self.history_index)

@@ -39,8 +39,7 @@ class Robustness:
                 'nominal_search': {'episodes': self.nominal_search.episodes, 'batches': self.nominal_search.batches,
                                    'wall_time_s': self.nominal_wall_time_s,
                                    'index': float(index) if np.isfinite(index) else None,
-                                   'converged': self.nominal_search.converged,
-                                   'certainty': self.nominal_search.certainty()}}
+                                   **self.nominal_search.certainty_fields()}}
 
 
 @dataclass(frozen=True)
