@@ -124,7 +124,8 @@ def hostile_tuning_report(tmp_path: Path, joints: list[str], port: int) -> dict:
             'episodes': 150, 'wall_time_s': 0.5, 'episodes_per_s': 300.0, 'search_index': 0.3,
             'in_process': indices, 'from_bag': indices, 'max_rel_difference': 0.0, 'agree': True,
             'bag': str(tmp_path / 'runs' / 'hostile' / 'bags' / 'best'), 'saturated_joints': [NEWLINE],
-            'warnings': [f'joint {refresh_to(port)} has no limit\nsecond line'], 'gains_files': ['g`ains.yaml']}
+            'warnings': [f'joint {refresh_to(port)} has no limit\nsecond line'], 'gains_files': ['g`ains.yaml'],
+            'converged': None, 'certainty': 'not certified: --method cma runs no independent global runs'}
 
 
 def test_a_tuning_report_shows_every_name_from_a_file_as_text_and_navigates_nowhere(browser, listener, tmp_path,

@@ -193,7 +193,7 @@ def test_a_tuning_writes_report_html_beside_report_md(browser, tmp_path, monkeyp
               'joint_names': joints, 'kp': [900.0] * 3, 'kv': [60.0] * 3, 'episodes': 150, 'wall_time_s': 0.5,
               'episodes_per_s': 300.0, 'search_index': 0.3, 'in_process': indices, 'from_bag': indices,
               'max_rel_difference': 0.0, 'agree': True, 'bag': str(tmp_path / 'runs' / 'small' / 'bags' / 'best'),
-              'gains_files': ['gains.yaml']}
+              'gains_files': ['gains.yaml'], 'converged': True, 'certainty': 'converged: 3 of 4 runs within 1 %'}
     run = RunFolder('small', tmp_path / 'runs', 'ddarm tune')
     try:
         page = write_tuning_report(run, report)

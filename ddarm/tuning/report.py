@@ -161,8 +161,7 @@ def write_tuning_report(run: RunFolder, report: dict) -> Path:
              + (f"{report['robust']['objective']} {report['index']} over the scenarios" if 'robust' in report
                 else report['index']) + f" = {report['search_index']:.9g}"
              + (' (**not converged**: see the certificate)' if report.get('converged') is False else
-                '' if report.get('converged') else " (**not certified**: only `--method global` compares independent "
-                'runs, so a deeper basin may remain unseen)'),
+                '' if report.get('converged') else f" (**{markdown_text(report['certainty'])}**)"),
              *([f"- {local_runs_text(report)}"] if report['restarts'] else []),
              '', '## Gains', '', _row(['joint', 'k_p', 'k_v']), _row(['---'] * 3)]
     lines += [_row([markdown_text(name), f'{p:.6g}', f'{d:.6g}'])
